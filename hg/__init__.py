@@ -1,0 +1,1 @@
+"""haptic-glance: reinforcement-learned tactile probing for 3D object recognition."""
