@@ -1,0 +1,24 @@
+"""Plain torch networks of the reinforcement haptic glance framework (no Lightning here)."""
+
+from hg.nets.heads import Baseline, FCClassifier, LinearClassifier, NClassClassifier
+from hg.nets.location import LocationNetwork
+from hg.nets.lstm import LSTMEncoder
+from hg.nets.mlp import cumulative_mean, mlp
+from hg.nets.p2carb import P2CARB
+from hg.nets.pcrn import PCRN
+from hg.nets.pointcloud import DGCNN, PointNet
+
+__all__ = [
+    "DGCNN",
+    "PCRN",
+    "P2CARB",
+    "Baseline",
+    "FCClassifier",
+    "LSTMEncoder",
+    "LinearClassifier",
+    "LocationNetwork",
+    "NClassClassifier",
+    "PointNet",
+    "cumulative_mean",
+    "mlp",
+]

@@ -1,0 +1,96 @@
+"""The location network (paper sec. 2.2 (b)): an autoregressive Gaussian policy over the next probe request."""
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from hg.nets.mlp import cumulative_mean
+
+
+class MaskedLinear(nn.Linear):
+    """Linear layer whose weight is multiplied by a fixed 0/1 mask (MADE, Germain et al. 2015)."""
+
+    def __init__(self, in_degrees: Tensor, out_degrees: Tensor, strict: bool) -> None:
+        super().__init__(len(in_degrees), len(out_degrees))
+        # Unit o may read unit i if deg(i) <= deg(o) (hidden layers) or deg(i) < deg(o) (output layer).
+        allowed = in_degrees[None, :] < out_degrees[:, None] if strict else in_degrees[None, :] <= out_degrees[:, None]
+        self.register_buffer("mask", allowed.float())
+
+    def forward(self, x: Tensor) -> Tensor:
+        return F.linear(x, self.weight * self.mask, self.bias)
+
+
+class LocationNetwork(nn.Module):
+    """pi(a_k | s_k) over a_k = (Py, Ux, Uy, Uz), factorised as in eq. (1): component j conditions on the
+    state and on components < j. One MADE network gives all components at once (teacher forcing), so the
+    log-probabilities of a whole rollout cost one pass; sampling takes one pass per component.
+
+    Degrees: state inputs 0, action component j has j + 1; hidden units cycle through 0..action_dim - 1;
+    mu_j and sigma_j have degree j + 1 and read only hidden units of lower degree.
+    """
+
+    def __init__(
+        self, in_dim: int, action_dim: int = 4, hidden: int = 128, std_floor: float = 0.05, std_max: float = 1.0
+    ) -> None:
+        super().__init__()
+        if not 0 < std_floor < std_max:
+            raise ValueError(f"LocationNetwork needs 0 < std_floor < std_max, got {std_floor=}, {std_max=}")
+        self.action_dim, self.std_floor, self.std_max = action_dim, std_floor, std_max
+        self.start = nn.Parameter(torch.zeros(in_dim))  # state before the first probe (empty history)
+        d_in = torch.cat([torch.zeros(in_dim, dtype=torch.long), torch.arange(1, action_dim + 1)])
+        d_hidden = torch.arange(hidden) % action_dim
+        d_out = torch.arange(1, action_dim + 1).repeat(2)  # (mu_1..mu_A, sigma_1..sigma_A)
+        self.net = nn.Sequential(
+            MaskedLinear(d_in, d_hidden, strict=False),
+            nn.ELU(),
+            MaskedLinear(d_hidden, d_hidden, strict=False),
+            nn.ELU(),
+            MaskedLinear(d_hidden, d_out, strict=True),
+        )
+
+    def state(self, rep: Tensor | None, k: int, batch_size: int | None = None) -> Tensor:
+        """s_k from which request k + 1 is drawn: mean pool of rep[:, :k] (B, K, D), or the learned start
+        for k = 0. With rep None (k = 0 only) batch_size must be given, so the start is never silently 1 row."""
+        if k == 0:
+            if rep is None and batch_size is None:
+                raise ValueError("LocationNetwork.state(None, 0) needs batch_size")
+            return self.start.expand(rep.shape[0] if rep is not None else batch_size, -1)
+        if rep is None or rep.shape[1] < k:
+            raise ValueError(f"LocationNetwork.state: k={k} needs at least k probes in rep")
+        return rep[:, :k].mean(1)
+
+    def states(self, rep: Tensor) -> Tensor:
+        """All s_i of a rollout at once, (B, N, D) -> (B, N, D): row i is state(rep, i)."""
+        start = self.start.expand(rep.shape[0], 1, -1)
+        return torch.cat([start, cumulative_mean(rep)[:, :-1]], 1)
+
+    def distribution(self, state: Tensor, action: Tensor) -> tuple[Tensor, Tensor]:
+        """(mu, sigma) of every component, (..., D), (..., A) -> (..., A) twice; masking lets mu_j, sigma_j
+        see only action[..., :j]. mu = tanh(.), sigma = std_floor + (std_max - std_floor) * sigmoid(.)."""
+        mu, pre_sigma = self.net(torch.cat([state, action], -1)).chunk(2, -1)
+        return torch.tanh(mu), self.std_floor + (self.std_max - self.std_floor) * torch.sigmoid(pre_sigma)
+
+    def sample(
+        self, state: Tensor, deterministic: bool = False, generator: torch.Generator | None = None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Draw a_k component by component as in eq. (1); returns the raw (unsquashed, detached) action and
+        its (mu, sigma). deterministic=True gives the mean-action policy."""
+        shape = (*state.shape[:-1], self.action_dim)
+        eps = (
+            torch.zeros(shape, device=state.device, dtype=state.dtype)
+            if deterministic
+            else torch.randn(shape, generator=generator, device=state.device, dtype=state.dtype)
+        )
+        action = torch.zeros_like(eps)
+        for j in range(self.action_dim):
+            mu, sigma = self.distribution(state, action)
+            action[..., j] = (mu[..., j] + sigma[..., j] * eps[..., j]).detach()
+        # The last pass already saw every component a mu_j / sigma_j may read, so (mu, sigma) belong to action.
+        return action, mu, sigma
+
+    def log_prob(self, state: Tensor, action: Tensor) -> Tensor:
+        """log pi(a_k | s_k) summed over components, (..., D), (..., A) -> (...). The action is detached: the
+        gradient flows only through mu and sigma, which gives eq. (4)/(5) and, weighted, eq. (3)."""
+        action = action.detach()
+        mu, sigma = self.distribution(state, action)
+        return torch.distributions.Normal(mu, sigma).log_prob(action).sum(-1)

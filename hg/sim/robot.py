@@ -1,0 +1,222 @@
+"""Any URDF arm as a probe carrier: joints and links found by name, IK warm-started from a cached reach map.
+
+PyBullet's IK from an arbitrary previous pose misses many requests; with restarts it is slow. So a reach map
+(joint solutions over a grid of the request space, found once with restarts and cached on disk, keyed by the
+URDF's hash) gives every probe a warm start, and one IK call per probe suffices.
+"""
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+import tempfile
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pybullet
+
+from hg.sim.client import ROBOT_GROUP, BulletClient
+from hg.sim.scene import Scene
+
+TOOL_LINK = "probe_tip"
+DEFAULT_URDF = Path(__file__).resolve().parents[2] / "urdf" / "hg_probe_arm.urdf"
+REACH_MAP_VERSION = 1
+POSITION_TOLERANCE = 0.005  # m: a probe counts as achieved within 5 mm ...
+ANGLE_TOLERANCE_DEG = 3.0  # ... and 3 degrees
+
+
+def achieved(pose_error: np.ndarray) -> np.ndarray:
+    """Which probes reached their request within the tolerances, from `ProbeArm.pose_error` rows."""
+    return (pose_error[..., 0] <= POSITION_TOLERANCE) & (pose_error[..., 1] <= ANGLE_TOLERANCE_DEG)
+
+
+def cache_dir() -> Path:
+    return Path(os.environ.get("HG_CACHE_DIR", Path.home() / ".cache" / "haptic-glance"))
+
+
+def tool_orientations(directions: np.ndarray) -> np.ndarray:
+    """Quaternions (x, y, z, w) turning the tool +z onto each direction u with one fixed roll convention.
+
+    Straight down is a half turn about x; a tilted u adds the smallest rotation from straight down to u.
+    """
+    u = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    axis = np.column_stack([u[:, 1], -u[:, 0], np.zeros(len(u))])  # (0, 0, -1) x u
+    sin_t = np.linalg.norm(axis, axis=1)
+    theta = np.arctan2(sin_t, -u[:, 2])
+    axis = np.where(sin_t[:, None] > 1e-12, axis / np.maximum(sin_t, 1e-12)[:, None], [1.0, 0.0, 0.0])
+    tilt = np.column_stack([axis * np.sin(theta / 2)[:, None], np.cos(theta / 2)])
+    # tilt (x) down, with down = (1, 0, 0, 0): Hamilton product written out for that constant
+    x, y, z, w = tilt.T
+    return np.column_stack([w, z, -y, -x])
+
+
+def load_robot(client: BulletClient, urdf: str | Path, tool_link: str = TOOL_LINK) -> tuple[int, int]:
+    """Load a URDF with a fixed base; return (body id, tool link index). Errors name the file and the fault."""
+    path = Path(urdf)
+    if not path.is_file():
+        raise FileNotFoundError(f"robot URDF {path}: file not found")
+    try:
+        ET.parse(path)
+    except ET.ParseError as exc:
+        raise ValueError(f"robot URDF {path}: malformed XML ({exc})") from exc
+    try:
+        body = client.loadURDF(str(path), useFixedBase=True, flags=pybullet.URDF_USE_INERTIA_FROM_FILE)
+    except pybullet.error as exc:
+        raise ValueError(f"robot URDF {path}: PyBullet cannot load it ({exc}); check mesh paths") from exc
+    links = {client.getJointInfo(body, j)[12].decode(): j for j in range(client.getNumJoints(body))}
+    if tool_link not in links:
+        raise ValueError(f"robot URDF {path}: no link named '{tool_link}' (links: {', '.join(links)})")
+    for link in [-1, *links.values()]:
+        client.setCollisionFilterGroupMask(body, link, ROBOT_GROUP, 0)
+    return body, links[tool_link]
+
+
+@dataclass(frozen=True)
+class ReachGrid:
+    """Grid of the request space: entry y on the probe line x the horizontal components of u."""
+
+    n_y: int = 17
+    n_dir: int = 9
+
+    def axes(self, scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+        s = math.sin(math.radians(scene.max_tilt_deg))
+        return np.linspace(*scene.probe_y, self.n_y), np.linspace(-s, s, self.n_dir)
+
+    def targets(self, scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+        """Entry points and directions of every grid entry; directions beyond the tilt limit are clamped."""
+        ys, hs = self.axes(scene)
+        gy, gx, gz = np.meshgrid(ys, hs, hs, indexing="ij")
+        lean = np.stack([gx.ravel(), gz.ravel()], 1)
+        s = math.sin(math.radians(scene.max_tilt_deg))
+        norm = np.linalg.norm(lean, axis=1, keepdims=True)
+        lean = np.where(norm > s, lean * s / np.maximum(norm, 1e-12), lean)
+        dirs = np.column_stack([lean, -np.sqrt(1.0 - (lean ** 2).sum(1))])
+        points = np.column_stack([np.full(gy.size, scene.probe_x), gy.ravel(), np.zeros(gy.size)])
+        return points, dirs
+
+    def nearest(self, scene: Scene, points: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """Flat index of the grid entry nearest to each request."""
+        ys, hs = self.axes(scene)
+        def idx(v, axis):
+            step = (axis[-1] - axis[0]) / max(len(axis) - 1, 1) or 1.0
+            return np.clip(np.rint((v - axis[0]) / step).astype(np.int64), 0, len(axis) - 1)
+        return (idx(points[:, 1], ys) * self.n_dir + idx(dirs[:, 0], hs)) * self.n_dir + idx(dirs[:, 1], hs)
+
+
+class ProbeArm:
+    """Puts the tool link at P along u with one IK call warm-started from the reach map."""
+
+    def __init__(self, client: BulletClient, urdf: str | Path, scene: Scene, tool_link: str = TOOL_LINK,
+                 grid: ReachGrid = ReachGrid(), ik_iterations: int = 20, ik_damping: float = 1e-3,
+                 seed: int = 0) -> None:
+        self.client, self.scene, self.grid, self.urdf = client, scene, grid, Path(urdf)
+        self.body, self.tool = load_robot(client, urdf, tool_link)
+        info = [client.getJointInfo(self.body, j) for j in range(client.getNumJoints(self.body))]
+        self.joints = [i[0] for i in info if i[2] in (pybullet.JOINT_REVOLUTE, pybullet.JOINT_PRISMATIC)]
+        self.joint_names = [info[j][1].decode() for j in self.joints]
+        lower = np.array([info[j][8] for j in self.joints])
+        upper = np.array([info[j][9] for j in self.joints])
+        unlimited = lower >= upper  # URDF continuous joints or missing limits
+        self.lower = np.where(unlimited, -2 * math.pi, lower)
+        self.upper = np.where(unlimited, 2 * math.pi, upper)
+        self.ik_iterations = ik_iterations
+        self.damping = [ik_damping] * len(self.joints)  # PyBullet's default damping converges slowly
+        self.key = self._cache_key(tool_link)
+        self.map_q, self.map_error = self._reach_map(seed)
+
+    # -- poses --------------------------------------------------------------------------------------
+    def set_joints(self, q: np.ndarray) -> None:
+        for j, v in zip(self.joints, q):
+            self.client.resetJointState(self.body, j, float(v))
+
+    def tool_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """World position of the tool link frame and its +z axis (the URDF link frame, not the inertial one)."""
+        state = self.client.getLinkState(self.body, self.tool, computeForwardKinematics=True)
+        m = self.client.getMatrixFromQuaternion(state[5])
+        return np.array(state[4]), np.array((m[2], m[5], m[8]))
+
+    def ik(self, point: np.ndarray, orientation: np.ndarray, start: np.ndarray, iterations: int) -> np.ndarray:
+        """One PyBullet IK call from `start`, clipped to the joint limits."""
+        q = self.client.calculateInverseKinematics(
+            self.body, self.tool, point.tolist(), orientation.tolist(), currentPositions=start.tolist(),
+            jointDamping=self.damping, maxNumIterations=iterations, residualThreshold=1e-6)
+        return np.clip(np.asarray(q[:len(self.joints)]), self.lower, self.upper)
+
+    def reach(self, points: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Move the tool to each (P, u) in turn; return achieved tip positions and axes (n, 3) each."""
+        orients = tool_orientations(dirs)
+        starts = self.map_q[self.grid.nearest(self.scene, points, dirs)]
+        tips, axes = np.empty_like(points), np.empty_like(dirs)
+        for i in range(len(points)):
+            self.set_joints(self.ik(points[i], orients[i], starts[i], self.ik_iterations))
+            tips[i], axes[i] = self.tool_pose()
+        for i in np.flatnonzero(~achieved(self.pose_error(points, dirs, tips, axes))):
+            tips[i], axes[i] = self._retry(points[i], dirs[i], orients[i])
+        return tips, axes
+
+    def _retry(self, point: np.ndarray, direction: np.ndarray, orientation: np.ndarray,
+               tries: int = 6) -> tuple[np.ndarray, np.ndarray]:
+        """Rare slow path: warm starts from the next-nearest reach-map entries, keeping the best pose."""
+        grid_points, grid_dirs = self.grid.targets(self.scene)
+        distance = np.abs(grid_points[:, 1] - point[1]) + np.abs(grid_dirs - direction).sum(1)
+        best = None
+        for entry in np.argsort(distance)[1:tries + 1]:
+            self.set_joints(self.ik(point, orientation, self.map_q[entry], self.ik_iterations))
+            tip, axis = self.tool_pose()
+            err = self.pose_error(point[None], direction[None], tip[None], axis[None])[0]
+            if best is None or err[0] + 1e-3 * err[1] < best[0]:
+                best = (err[0] + 1e-3 * err[1], tip, axis)
+            if achieved(err):
+                break
+        return best[1], best[2]
+
+    # -- reach map ----------------------------------------------------------------------------------
+    def _cache_key(self, tool_link: str) -> str:
+        s = self.scene
+        text = f"{REACH_MAP_VERSION}|{tool_link}|{s.probe_x}|{s.probe_y}|{s.max_tilt_deg}|{self.grid}|"
+        return hashlib.sha256(text.encode() + self.urdf.read_bytes()).hexdigest()[:20]
+
+    def _reach_map(self, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        path = cache_dir() / "reach" / f"{self.urdf.stem}-{self.key}.npz"
+        if path.is_file():
+            with np.load(path) as data:
+                return data["q"], data["error"]
+        q, error = self._build_reach_map(seed)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".npz", delete=False) as tmp:
+            np.savez(tmp, q=q, error=error)
+        os.replace(tmp.name, path)  # atomic: a killed build never leaves a half-written map
+        return q, error
+
+    def pose_error(self, points: np.ndarray, dirs: np.ndarray, tips: np.ndarray, axes: np.ndarray) -> np.ndarray:
+        """(n, 2): position error in metres and angle error in degrees of achieved vs requested poses."""
+        cos = np.clip((axes * dirs).sum(-1), -1.0, 1.0)
+        return np.column_stack([np.linalg.norm(tips - points, axis=-1), np.degrees(np.arccos(cos))])
+
+    def _build_reach_map(self, seed: int, restarts: int = 12) -> tuple[np.ndarray, np.ndarray]:
+        """Best IK solution per grid entry: warm starts from the neighbour, the middle pose, random poses."""
+        rng = np.random.default_rng(seed)
+        points, dirs = self.grid.targets(self.scene)
+        orients = tool_orientations(dirs)
+        middle = np.clip((self.lower + self.upper) / 2, -math.pi, math.pi)
+        q_map = np.zeros((len(points), len(self.joints)))
+        err_map = np.zeros((len(points), 2))
+        previous = middle
+        for i in range(len(points)):
+            best, best_err = None, None
+            starts = [previous, middle] + [rng.uniform(np.maximum(self.lower, -math.pi),
+                                                       np.minimum(self.upper, math.pi)) for _ in range(restarts)]
+            for start in starts:
+                q = self.ik(points[i], orients[i], start, 200)
+                self.set_joints(q)
+                err = self.pose_error(points[i:i + 1], dirs[i:i + 1], *map(lambda a: a[None], self.tool_pose()))[0]
+                if best_err is None or err[0] / POSITION_TOLERANCE + err[1] / ANGLE_TOLERANCE_DEG < \
+                        best_err[0] / POSITION_TOLERANCE + best_err[1] / ANGLE_TOLERANCE_DEG:
+                    best, best_err = q, err
+                if err[0] < 0.2 * POSITION_TOLERANCE and err[1] < 0.2 * ANGLE_TOLERANCE_DEG:
+                    break
+            q_map[i], err_map[i] = best, best_err
+            previous = best
+        return q_map, err_map

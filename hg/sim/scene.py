@@ -1,0 +1,83 @@
+"""The probing scene: ground, probe line, probe length, tilt limit and the object pose ranges.
+
+All lengths in metres, all angles in degrees. One dataclass so that every command reads the same numbers.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+Range = tuple[float, float]
+
+
+@dataclass(frozen=True)
+class Scene:
+    """Geometry of the task (paper section 2.1): objects lie below Z=0, probes enter on the probe line."""
+
+    probe_x: float = 0.0
+    probe_y: Range = (-0.40, 0.40)
+    probe_length: float = 0.60  # U_len
+    max_tilt_deg: float = 45.0  # largest angle between the probe direction u and straight down
+    object_x: Range = (-0.15, 0.15)
+    object_y: Range = (-0.15, 0.15)
+    object_z: Range = (-0.35, -0.20)
+    rot_x_deg: Range = (-10.0, 10.0)
+    rot_y_deg: Range = (-10.0, 10.0)
+    rot_z_deg: Range = (-180.0, 180.0)
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            values = tuple(value) if isinstance(value, (tuple, list)) else (value,)
+            if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
+                raise ValueError(f"scene.{f.name}={value!r}: every value must be a finite number")
+            if isinstance(value, (tuple, list)):
+                if len(values) != 2 or values[0] > values[1]:
+                    raise ValueError(f"scene.{f.name}={value!r}: expected a (low, high) pair with low <= high")
+                object.__setattr__(self, f.name, (float(values[0]), float(values[1])))
+        if self.probe_length <= 0:
+            raise ValueError(f"scene.probe_length={self.probe_length}: U_len must be > 0")
+        if not 0.0 <= self.max_tilt_deg < 90.0:
+            raise ValueError(f"scene.max_tilt_deg={self.max_tilt_deg}: must be in [0, 90) so that u_z < 0")
+        if self.object_z[1] >= 0:
+            raise ValueError(f"scene.object_z={self.object_z}: object centres must lie below the ground Z=0")
+
+    @property
+    def pose_low(self) -> np.ndarray:
+        """Lower corner of the pose space (X, Y, Z, Rx, Ry, Rz)."""
+        return np.array([r[0] for r in self._pose_ranges()])
+
+    @property
+    def pose_high(self) -> np.ndarray:
+        return np.array([r[1] for r in self._pose_ranges()])
+
+    def _pose_ranges(self) -> tuple[Range, ...]:
+        return (self.object_x, self.object_y, self.object_z, self.rot_x_deg, self.rot_y_deg, self.rot_z_deg)
+
+    def request_to_probe(self, requests: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Map requests (py, ux, uy, uz) in [-1, 1] to entry points P (B, 3) and unit directions u (B, 3).
+
+        py moves P along the probe line; (ux, uy) lean the probe towards +x/+y and uz sets how steep it is
+        (uz = 1 steepest): u is (ux tan(t), uy tan(t), -(3 + uz) / 4) normalised, with its tilt clamped to
+        max_tilt_deg, so u_z < 0 always. Values outside [-1, 1] are clipped.
+        """
+        requests = np.asarray(requests, dtype=np.float64)
+        if requests.ndim != 2 or requests.shape[1] != 4:
+            raise ValueError(f"requests: expected shape (B, 4), got {requests.shape}")
+        if not np.isfinite(requests).all():
+            bad = np.argwhere(~np.isfinite(requests))[0]
+            raise ValueError(f"requests: non-finite value {requests[tuple(bad)]} at episode {bad[0]}, component {bad[1]}")
+        r = np.clip(requests, -1.0, 1.0)
+        lo, hi = self.probe_y
+        points = np.zeros((len(r), 3))
+        points[:, 0] = self.probe_x
+        points[:, 1] = lo + (r[:, 0] + 1.0) * 0.5 * (hi - lo)
+        tan_max = math.tan(math.radians(self.max_tilt_deg))
+        lean = r[:, 1:3] * tan_max
+        depth = (3.0 + r[:, 3]) / 4.0
+        slope = np.linalg.norm(lean, axis=1) / depth  # tan(tilt)
+        scale = np.where(slope > tan_max, tan_max / np.maximum(slope, 1e-12), 1.0)
+        direction = np.column_stack([lean * scale[:, None], -depth])
+        return points, direction / np.linalg.norm(direction, axis=1, keepdims=True)

@@ -1,0 +1,153 @@
+"""Properties the training loop relies on: causality over probes, the eq. (1) masking, the policy's
+log-probability and sampling, and the point cloud baselines' shapes."""
+
+import pytest
+import torch
+
+from hg.nets import (
+    DGCNN,
+    PCRN,
+    P2CARB,
+    FCClassifier,
+    LocationNetwork,
+    LSTMEncoder,
+    NClassClassifier,
+    PointNet,
+)
+
+B, N, K = 3, 6, 2  # batch, probes, the probe after which we perturb
+
+
+@pytest.fixture(autouse=True)
+def _seed() -> None:
+    torch.manual_seed(0)
+
+
+def perturbed_after(x: torch.Tensor, k: int) -> torch.Tensor:
+    y = x.clone()
+    y[:, k + 1 :] += torch.randn_like(y[:, k + 1 :])
+    return y
+
+
+def assert_causal(f, *inputs: torch.Tensor) -> None:
+    """Changing probes > K leaves outputs <= K untouched and changes outputs > K."""
+    out = f(*inputs)
+    out2 = f(*(perturbed_after(x, K) for x in inputs))
+    assert torch.allclose(out[:, : K + 1], out2[:, : K + 1], atol=1e-6)
+    for k in range(K + 1, N):
+        assert not torch.allclose(out[:, k], out2[:, k], atol=1e-4)
+
+
+@pytest.mark.parametrize("aggregate", ["sum", "mean"])
+def test_p2carb_causal(aggregate: str) -> None:
+    net = P2CARB(4, feat_dims=(8, 8, 16), att_width=16, aggregate=aggregate)
+    assert net(torch.randn(B, N, 4)).shape == (B, N, net.out_dim)
+    assert_causal(net, torch.randn(B, N, 4))
+
+
+def test_p2carb_rejects_unknown_aggregate() -> None:
+    with pytest.raises(ValueError, match="aggregate"):
+        P2CARB(4, aggregate="max")
+
+
+@pytest.mark.parametrize(
+    "make", [lambda: PCRN(width=16, out_dim=32), lambda: LSTMEncoder(hidden=32)], ids=["PCRN", "LSTM"]
+)
+def test_encoders_causal(make) -> None:
+    encoder = make()
+    requests, points = torch.randn(B, N, 4), torch.randn(B, N, 4)
+    assert encoder(requests, points).shape == (B, N, encoder.out_dim) == (B, N, 32)
+    assert_causal(encoder, requests, points)
+    assert_causal(lambda r: encoder(r, points), requests)  # each sequence alone is causal too
+    assert_causal(lambda p: encoder(requests, p), points)
+
+
+def test_location_masking_follows_eq1() -> None:
+    net = LocationNetwork(8, hidden=32)
+    state, action = torch.randn(B, 8), torch.randn(B, 4)
+    mu, sigma = net.distribution(state, action)
+    for j in range(4):
+        later = action.clone()
+        later[:, j:] += 1.0
+        mu2, sigma2 = net.distribution(state, later)
+        assert torch.allclose(mu[:, j], mu2[:, j]) and torch.allclose(sigma[:, j], sigma2[:, j])
+        if j >= 1:
+            earlier = action.clone()
+            earlier[:, :j] += 1.0
+            mu3, sigma3 = net.distribution(state, earlier)
+            assert not torch.allclose(mu[:, j], mu3[:, j]) and not torch.allclose(sigma[:, j], sigma3[:, j])
+    mu4, _ = net.distribution(state + 1.0, action)
+    assert not torch.allclose(mu[:, 0], mu4[:, 0])  # component 0 still reads the state
+
+
+def test_location_log_prob_and_bounds() -> None:
+    net = LocationNetwork(8, hidden=32, std_floor=0.1, std_max=0.5)
+    state = torch.randn(B, N, 8) * 5  # extra leading dim, large inputs to push the squashing
+    action = torch.randn(B, N, 4, requires_grad=True)
+    mu, sigma = net.distribution(state, action)
+    assert ((sigma >= 0.1) & (sigma <= 0.5)).all() and ((mu > -1) & (mu < 1)).all()
+    log_prob = net.log_prob(state, action)
+    expected = torch.distributions.Normal(mu, sigma).log_prob(action).sum(-1)
+    assert log_prob.shape == (B, N) and torch.allclose(log_prob, expected)
+    log_prob.sum().backward()
+    assert action.grad is None or not action.grad.any()
+    assert net.net[0].weight.grad.abs().sum() > 0
+
+
+def test_location_sample() -> None:
+    net = LocationNetwork(8, hidden=32)
+    state = torch.randn(B, 8)
+    draws = [net.sample(state, generator=torch.Generator().manual_seed(7))[0] for _ in range(2)]
+    assert torch.equal(draws[0], draws[1])
+    assert not torch.equal(draws[0], net.sample(state, generator=torch.Generator().manual_seed(8))[0])
+    action, mu, sigma = net.sample(state, deterministic=True)
+    assert torch.allclose(action, mu) and not action.requires_grad
+    # The returned (mu, sigma) are those of the returned action under teacher forcing.
+    action, mu, sigma = net.sample(state, generator=torch.Generator().manual_seed(7))
+    mu2, sigma2 = net.distribution(state, action)
+    assert torch.allclose(mu, mu2) and torch.allclose(sigma, sigma2)
+
+
+def test_location_states_match_state() -> None:
+    net = LocationNetwork(8, hidden=32)
+    with torch.no_grad():
+        net.start.normal_()
+    rep = torch.randn(B, N, 8)
+    states = net.states(rep)
+    for i in range(N):
+        assert torch.allclose(states[:, i], net.state(rep, i), atol=1e-6)
+    assert torch.equal(net.state(None, 0, batch_size=B), net.start.expand(B, -1))
+    with pytest.raises(ValueError, match="batch_size"):
+        net.state(None, 0)
+
+
+def test_fc_classifier_causal() -> None:
+    assert_causal(FCClassifier(8, 4, hidden=16), torch.randn(B, N, 8))
+
+
+def test_nclass_classifier_reads_only_its_probe() -> None:
+    clf = NClassClassifier(8, 4, n_probes=N, hidden=16)
+    rep = torch.randn(B, N, 8)
+    logits = clf(rep)
+    assert logits.shape == (B, N, 4)
+    for k in range(N):
+        changed = rep.clone()
+        changed[:, k] += 1.0
+        differs = (clf(changed) - logits).abs().amax(dim=(0, 2)) > 1e-6
+        assert differs.tolist() == [i == k for i in range(N)]
+    assert torch.allclose(clf(rep[:, :3]), logits[:, :3])  # short rollouts use the first classifiers
+    with pytest.raises(ValueError, match="n_probes"):
+        clf(torch.randn(B, N + 1, 8))
+
+
+@pytest.mark.parametrize("make", [lambda: PointNet(4), lambda: DGCNN(4, k=9)], ids=["PointNet", "DGCNN"])
+def test_pointcloud_shapes(make) -> None:
+    net = make()
+    assert net(torch.randn(2, 10, 3)).shape == (2, 4)
+    net.eval()
+    assert net(torch.randn(1, 10, 3)).shape == (1, 4)
+
+
+def test_dgcnn_k_must_be_below_point_count() -> None:
+    with pytest.raises(ValueError, match="k=10"):
+        DGCNN(4, k=10)(torch.randn(2, 10, 3))
