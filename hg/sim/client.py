@@ -53,8 +53,6 @@ class BulletClient:
                                             collisionFilterMask=OBJECT_GROUP, physicsClientId=self.id)
             if len(results) != hi - lo:
                 raise RuntimeError(f"rayTestBatch returned {len(results)} results for {hi - lo} rays")
-            for i, (body, _link, _fraction, pos, _normal) in enumerate(results, start=lo):
-                if body >= 0:
-                    hit[i] = True
-                    position[i] = pos
+            hit[lo:hi] = [r[0] >= 0 for r in results]
+            position[lo:hi] = [r[3] for r in results]
         return hit, position

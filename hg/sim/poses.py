@@ -27,6 +27,14 @@ def rotation_matrices(angles_deg: np.ndarray) -> np.ndarray:
     ], -2)
 
 
+def quaternions(angles_deg: np.ndarray) -> np.ndarray:
+    """Quaternions (x, y, z, w) of the same rotations: PyBullet's getQuaternionFromEuler, vectorised."""
+    half = np.radians(np.asarray(angles_deg, dtype=np.float64)) / 2
+    (sr, sp, sy), (cr, cp, cy) = np.sin(half).T, np.cos(half).T
+    return np.column_stack([sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
+                            cr * cp * sy - sr * sp * cy, cr * cp * cy + sr * sp * sy])
+
+
 def check_below_ground(scene: Scene, objects: ObjectSet, grid: int = 5) -> None:
     """Raise when some allowed pose puts part of an object above Z=0 (Rz does not change heights)."""
     rx, ry = np.meshgrid(np.linspace(*scene.rot_x_deg, grid), np.linspace(*scene.rot_y_deg, grid))

@@ -52,6 +52,12 @@ def tool_orientations(directions: np.ndarray) -> np.ndarray:
     return np.column_stack([w, z, -y, -x])
 
 
+def z_axes(quaternions: np.ndarray) -> np.ndarray:
+    """Third column of the rotation matrix of each quaternion (x, y, z, w): the tool's probing axis."""
+    x, y, z, w = np.asarray(quaternions, dtype=np.float64).reshape(-1, 4).T
+    return np.column_stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)])
+
+
 def load_robot(client: BulletClient, urdf: str | Path, tool_link: str = TOOL_LINK) -> tuple[int, int]:
     """Load a URDF with a fixed base; return (body id, tool link index). Errors name the file and the fault."""
     path = Path(urdf)
@@ -128,30 +134,40 @@ class ProbeArm:
 
     # -- poses --------------------------------------------------------------------------------------
     def set_joints(self, q: np.ndarray) -> None:
-        for j, v in zip(self.joints, q):
-            self.client.resetJointState(self.body, j, float(v))
+        self.client.resetJointStatesMultiDof(self.body, self.joints, [[float(v)] for v in q])
 
-    def tool_pose(self) -> tuple[np.ndarray, np.ndarray]:
-        """World position of the tool link frame and its +z axis (the URDF link frame, not the inertial one)."""
-        state = self.client.getLinkState(self.body, self.tool, computeForwardKinematics=True)
-        m = self.client.getMatrixFromQuaternion(state[5])
-        return np.array(state[4]), np.array((m[2], m[5], m[8]))
+    def place(self, points: np.ndarray, orientations: np.ndarray, starts: np.ndarray,
+              iterations: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One IK call per target from its warm start, joints reset to the solution (no physics step).
 
-    def ik(self, point: np.ndarray, orientation: np.ndarray, start: np.ndarray, iterations: int) -> np.ndarray:
-        """One PyBullet IK call from `start`, clipped to the joint limits."""
-        q = self.client.calculateInverseKinematics(
-            self.body, self.tool, point.tolist(), orientation.tolist(), currentPositions=start.tolist(),
-            jointDamping=self.damping, maxNumIterations=iterations, residualThreshold=1e-6)
-        return np.clip(np.asarray(q[:len(self.joints)]), self.lower, self.upper)
+        Returns joint positions, achieved tool positions and quaternions (the URDF link frame, not the inertial
+        one). Solutions outside the joint limits are clipped afterwards, in the rare slow path: this loop is the
+        probe's hot path, so it only passes plain lists to PyBullet.
+        """
+        cid, body, tool, joints, damping = self.client.id, self.body, self.tool, self.joints, self.damping
+        ik, reset, link_state = (pybullet.calculateInverseKinematics, pybullet.resetJointStatesMultiDof,
+                                 pybullet.getLinkState)
+        qs, tips, quats = [], [], []
+        for point, orientation, start in zip(points.tolist(), orientations.tolist(), starts.tolist()):
+            q = ik(body, tool, point, orientation, currentPositions=start, jointDamping=damping,
+                   maxNumIterations=iterations, residualThreshold=1e-6, physicsClientId=cid)
+            reset(body, joints, [[v] for v in q], physicsClientId=cid)
+            state = link_state(body, tool, computeForwardKinematics=True, physicsClientId=cid)
+            qs.append(q), tips.append(state[4]), quats.append(state[5])
+        qs, tips, quats = np.array(qs), np.array(tips), np.array(quats)
+        for i in np.flatnonzero(((qs < self.lower) | (qs > self.upper)).any(axis=1)):
+            qs[i] = np.clip(qs[i], self.lower, self.upper)
+            self.set_joints(qs[i])
+            state = self.client.getLinkState(body, tool, computeForwardKinematics=True)
+            tips[i], quats[i] = state[4], state[5]
+        return qs, tips, quats
 
     def reach(self, points: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Move the tool to each (P, u) in turn; return achieved tip positions and axes (n, 3) each."""
+        """Move the tool to each (P, u) in turn; return achieved tip positions and +z axes (n, 3) each."""
         orients = tool_orientations(dirs)
         starts = self.map_q[self.grid.nearest(self.scene, points, dirs)]
-        tips, axes = np.empty_like(points), np.empty_like(dirs)
-        for i in range(len(points)):
-            self.set_joints(self.ik(points[i], orients[i], starts[i], self.ik_iterations))
-            tips[i], axes[i] = self.tool_pose()
+        _, tips, quats = self.place(points, orients, starts, self.ik_iterations)
+        axes = z_axes(quats)
         for i in np.flatnonzero(~achieved(self.pose_error(points, dirs, tips, axes))):
             tips[i], axes[i] = self._retry(points[i], dirs[i], orients[i])
         return tips, axes
@@ -163,8 +179,8 @@ class ProbeArm:
         distance = np.abs(grid_points[:, 1] - point[1]) + np.abs(grid_dirs - direction).sum(1)
         best = None
         for entry in np.argsort(distance)[1:tries + 1]:
-            self.set_joints(self.ik(point, orientation, self.map_q[entry], self.ik_iterations))
-            tip, axis = self.tool_pose()
+            _, tip, quat = self.place(point[None], orientation[None], self.map_q[entry][None], self.ik_iterations)
+            tip, axis = tip[0], z_axes(quat)[0]
             err = self.pose_error(point[None], direction[None], tip[None], axis[None])[0]
             if best is None or err[0] + 1e-3 * err[1] < best[0]:
                 best = (err[0] + 1e-3 * err[1], tip, axis)
@@ -209,12 +225,11 @@ class ProbeArm:
             starts = [previous, middle] + [rng.uniform(np.maximum(self.lower, -math.pi),
                                                        np.minimum(self.upper, math.pi)) for _ in range(restarts)]
             for start in starts:
-                q = self.ik(points[i], orients[i], start, 200)
-                self.set_joints(q)
-                err = self.pose_error(points[i:i + 1], dirs[i:i + 1], *map(lambda a: a[None], self.tool_pose()))[0]
+                q, tip, quat = self.place(points[i:i + 1], orients[i:i + 1], start[None], 200)
+                err = self.pose_error(points[i:i + 1], dirs[i:i + 1], tip, z_axes(quat))[0]
                 if best_err is None or err[0] / POSITION_TOLERANCE + err[1] / ANGLE_TOLERANCE_DEG < \
                         best_err[0] / POSITION_TOLERANCE + best_err[1] / ANGLE_TOLERANCE_DEG:
-                    best, best_err = q, err
+                    best, best_err = q[0], err
                 if err[0] < 0.2 * POSITION_TOLERANCE and err[1] < 0.2 * ANGLE_TOLERANCE_DEG:
                     break
             q_map[i], err_map[i] = best, best_err

@@ -66,18 +66,21 @@ class Scene:
         requests = np.asarray(requests, dtype=np.float64)
         if requests.ndim != 2 or requests.shape[1] != 4:
             raise ValueError(f"requests: expected shape (B, 4), got {requests.shape}")
-        if not np.isfinite(requests).all():
+        if not np.isfinite(requests.sum()):
             bad = np.argwhere(~np.isfinite(requests))[0]
             raise ValueError(f"requests: non-finite value {requests[tuple(bad)]} at episode {bad[0]}, component {bad[1]}")
-        r = np.clip(requests, -1.0, 1.0)
+        py, ux, uy, uz = np.clip(requests, -1.0, 1.0).T
         lo, hi = self.probe_y
-        points = np.zeros((len(r), 3))
-        points[:, 0] = self.probe_x
-        points[:, 1] = lo + (r[:, 0] + 1.0) * 0.5 * (hi - lo)
         tan_max = math.tan(math.radians(self.max_tilt_deg))
-        lean = r[:, 1:3] * tan_max
-        depth = (3.0 + r[:, 3]) / 4.0
-        slope = np.linalg.norm(lean, axis=1) / depth  # tan(tilt)
-        scale = np.where(slope > tan_max, tan_max / np.maximum(slope, 1e-12), 1.0)
-        direction = np.column_stack([lean * scale[:, None], -depth])
-        return points, direction / np.linalg.norm(direction, axis=1, keepdims=True)
+        points = np.zeros((len(requests), 3))
+        points[:, 0] = self.probe_x
+        points[:, 1] = lo + (py + 1.0) * (0.5 * (hi - lo))
+        direction = np.empty((len(requests), 3))
+        direction[:, 0] = ux * tan_max
+        direction[:, 1] = uy * tan_max
+        direction[:, 2] = -0.25 * (3.0 + uz)
+        # shrink the lean where the tilt exceeds the limit: |lean| <= tan_max * depth
+        lean = np.sqrt(direction[:, 0] ** 2 + direction[:, 1] ** 2)
+        direction[:, :2] *= np.minimum(1.0, tan_max * -direction[:, 2] / np.maximum(lean, 1e-12))[:, None]
+        direction /= np.sqrt((direction ** 2).sum(axis=1))[:, None]
+        return points, direction

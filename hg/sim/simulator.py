@@ -11,10 +11,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pybullet
 
 from hg.sim.client import GROUND_GROUP, OBJECT_GROUP, BulletClient
 from hg.sim.objects import ObjectSet, load_object_set
-from hg.sim.poses import check_below_ground
+from hg.sim.poses import check_below_ground, quaternions
 from hg.sim.robot import DEFAULT_URDF, TOOL_LINK, ProbeArm
 from hg.sim.scene import Scene
 
@@ -115,16 +116,15 @@ class ProbeSimulator:
             raise ValueError(f"poses: expected {n} finite rows (X, Y, Z, Rx, Ry, Rz), got shape {poses.shape}")
         if labels.min() < 0 or labels.max() >= len(self.objects):
             raise ValueError(f"labels: class indices must be in [0, {len(self.objects)}), got {labels.min()}..{labels.max()}")
-        c = self.client
-        for i in range(self.batch_size):
-            body = self.bodies[labels[i], i] if i < n else -1
-            if self.active[i] >= 0 and self.active[i] != body:
-                c.resetBasePositionAndOrientation(int(self.active[i]), self._park(i), (0, 0, 0, 1))
-            if body >= 0:
-                orientation = c.getQuaternionFromEuler(np.radians(poses[i, 3:]).tolist())
-                c.resetBasePositionAndOrientation(int(body), (self.offsets[i] + poses[i, :3]).tolist(), orientation)
-            self.active[i] = body
-        self.labels, self.poses = labels, poses
+        cid, move = self.client.id, pybullet.resetBasePositionAndOrientation
+        bodies = np.full(self.batch_size, -1, dtype=np.int64)
+        bodies[:n] = self.bodies[labels, np.arange(n)]
+        for i in np.flatnonzero((self.active >= 0) & (self.active != bodies)):
+            move(int(self.active[i]), self._park(i), (0, 0, 0, 1), physicsClientId=cid)
+        for body, position, orientation in zip(bodies[:n].tolist(), (self.offsets[:n] + poses[:, :3]).tolist(),
+                                               quaternions(poses[:, 3:]).tolist()):
+            move(body, position, orientation, physicsClientId=cid)
+        self.active, self.labels, self.poses = bodies, labels, poses
 
     def probe(self, requests: np.ndarray) -> ProbeResult:
         """Probe every episode once; requests (n, 4) in [-1, 1], one row per episode of the last reset."""
@@ -143,7 +143,10 @@ class ProbeSimulator:
         offset = self.offsets[:n]
         end = start + self.scene.probe_length * axis
         hit, position = self.client.cast_rays(start + offset, end + offset)
-        points = np.column_stack([np.where(hit[:, None], position - offset, end), hit.astype(np.float64)])
+        points = np.empty((n, 4))
+        points[:, :3] = end
+        points[hit, :3] = position[hit] - offset[hit]
+        points[:, 3] = hit
         self._apply_noise(points, start, end, hit)
         return ProbeResult(points, entry, direction, error)
 
