@@ -47,8 +47,8 @@ def time_bare(sim: ProbeSimulator, work: list[tuple], arm: bool) -> float:
             rows = [(p.tolist(), o.tolist(), q.tolist()) for p, o, q in zip(
                 entry, tool_orientations(direction), sim.arm.map_q[sim.arm.grid.nearest(sim.scene, entry, direction)])] \
                 if arm else None
-            starts = (entry + sim.offsets).tolist()
-            ends = (entry + sim.offsets + sim.scene.probe_length * direction).tolist()
+            starts = entry + sim.offsets
+            ends = starts + sim.scene.probe_length * direction
             prepared.append((rows, starts, ends))
     elapsed = 0.0
     for rows, starts, ends in prepared:

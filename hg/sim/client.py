@@ -49,7 +49,8 @@ class BulletClient:
         position = np.zeros((n, 3))
         for lo in range(0, n, RAY_CHUNK):
             hi = min(lo + RAY_CHUNK, n)
-            results = pybullet.rayTestBatch(rayFromPositions=starts[lo:hi].tolist(), rayToPositions=ends[lo:hi].tolist(),
+            results = pybullet.rayTestBatch(rayFromPositions=np.ascontiguousarray(starts[lo:hi], dtype=np.float64),
+                                            rayToPositions=np.ascontiguousarray(ends[lo:hi], dtype=np.float64),
                                             collisionFilterMask=OBJECT_GROUP, physicsClientId=self.id)
             if len(results) != hi - lo:
                 raise RuntimeError(f"rayTestBatch returned {len(results)} results for {hi - lo} rays")

@@ -103,12 +103,14 @@ class ReachGrid:
         return points, dirs
 
     def nearest(self, scene: Scene, points: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-        """Flat index of the grid entry nearest to each request."""
+        """Flat index of the grid entry nearest to each request (entry y, u_x, u_y)."""
         ys, hs = self.axes(scene)
-        def idx(v, axis):
-            step = (axis[-1] - axis[0]) / max(len(axis) - 1, 1) or 1.0
-            return np.clip(np.rint((v - axis[0]) / step).astype(np.int64), 0, len(axis) - 1)
-        return (idx(points[:, 1], ys) * self.n_dir + idx(dirs[:, 0], hs)) * self.n_dir + idx(dirs[:, 1], hs)
+        origin = np.array([ys[0], hs[0], hs[0]])
+        step = np.maximum((np.array([ys[-1], hs[-1], hs[-1]]) - origin) / np.maximum(
+            np.array([self.n_y, self.n_dir, self.n_dir]) - 1, 1), 1e-12)
+        coords = np.column_stack([points[:, 1], dirs[:, :2]])
+        cell = np.clip(np.rint((coords - origin) / step), 0, [self.n_y - 1, self.n_dir - 1, self.n_dir - 1])
+        return cell.astype(np.int64) @ np.array([self.n_dir * self.n_dir, self.n_dir, 1])
 
 
 class ProbeArm:
@@ -129,6 +131,7 @@ class ProbeArm:
         self.upper = np.where(unlimited, 2 * math.pi, upper)
         self.ik_iterations = ik_iterations
         self.damping = [ik_damping] * len(self.joints)  # PyBullet's default damping converges slowly
+        self.grid_targets = grid.targets(scene)
         self.key = self._cache_key(tool_link)
         self.map_q, self.map_error = self._reach_map(seed)
 
@@ -147,14 +150,16 @@ class ProbeArm:
         cid, body, tool, joints, damping = self.client.id, self.body, self.tool, self.joints, self.damping
         ik, reset, link_state = (pybullet.calculateInverseKinematics, pybullet.resetJointStatesMultiDof,
                                  pybullet.getLinkState)
-        qs, tips, quats = [], [], []
+        qs, frames = [], []
         for point, orientation, start in zip(points.tolist(), orientations.tolist(), starts.tolist()):
             q = ik(body, tool, point, orientation, currentPositions=start, jointDamping=damping,
                    maxNumIterations=iterations, residualThreshold=1e-6, physicsClientId=cid)
             reset(body, joints, [[v] for v in q], physicsClientId=cid)
             state = link_state(body, tool, computeForwardKinematics=True, physicsClientId=cid)
-            qs.append(q), tips.append(state[4]), quats.append(state[5])
-        qs, tips, quats = np.array(qs), np.array(tips), np.array(quats)
+            qs.append(q)
+            frames.append(state[4] + state[5])
+        qs, frames = np.array(qs), np.array(frames)
+        tips, quats = frames[:, :3], frames[:, 3:]
         for i in np.flatnonzero(((qs < self.lower) | (qs > self.upper)).any(axis=1)):
             qs[i] = np.clip(qs[i], self.lower, self.upper)
             self.set_joints(qs[i])
@@ -175,7 +180,7 @@ class ProbeArm:
     def _retry(self, point: np.ndarray, direction: np.ndarray, orientation: np.ndarray,
                tries: int = 6) -> tuple[np.ndarray, np.ndarray]:
         """Rare slow path: warm starts from the next-nearest reach-map entries, keeping the best pose."""
-        grid_points, grid_dirs = self.grid.targets(self.scene)
+        grid_points, grid_dirs = self.grid_targets
         distance = np.abs(grid_points[:, 1] - point[1]) + np.abs(grid_dirs - direction).sum(1)
         best = None
         for entry in np.argsort(distance)[1:tries + 1]:
@@ -214,7 +219,7 @@ class ProbeArm:
     def _build_reach_map(self, seed: int, restarts: int = 12) -> tuple[np.ndarray, np.ndarray]:
         """Best IK solution per grid entry: warm starts from the neighbour, the middle pose, random poses."""
         rng = np.random.default_rng(seed)
-        points, dirs = self.grid.targets(self.scene)
+        points, dirs = self.grid_targets
         orients = tool_orientations(dirs)
         middle = np.clip((self.lower + self.upper) / 2, -math.pi, math.pi)
         q_map = np.zeros((len(points), len(self.joints)))
