@@ -105,8 +105,11 @@ class ProbeSimulator:
     def _park(self, slot: int) -> list[float]:
         return (self.offsets[slot] + (0.0, 0.0, PARK_DEPTH)).tolist()
 
-    def reset(self, labels: np.ndarray, poses: np.ndarray) -> None:
-        """Place episode i's object (class labels[i]) at poses[i] = (X, Y, Z, Rx, Ry, Rz in degrees)."""
+    def reset(self, labels: np.ndarray, poses: np.ndarray, seed: int | None = None) -> None:
+        """Place episode i's object (class labels[i]) at poses[i] = (X, Y, Z, Rx, Ry, Rz in degrees).
+
+        A seed restarts the sensor-noise stream, so a batch's probes depend on that batch alone (resume, eval).
+        """
         labels = np.asarray(labels, dtype=np.int64).reshape(-1)
         poses = np.asarray(poses, dtype=np.float64)
         n = len(labels)
@@ -125,6 +128,8 @@ class ProbeSimulator:
                                                quaternions(poses[:, 3:]).tolist()):
             move(body, position, orientation, physicsClientId=cid)
         self.active, self.labels, self.poses = bodies, labels, poses
+        if seed is not None:
+            self.rng = np.random.default_rng(seed)
 
     def probe(self, requests: np.ndarray) -> ProbeResult:
         """Probe every episode once; requests (n, 4) in [-1, 1], one row per episode of the last reset."""

@@ -1,0 +1,107 @@
+"""Callbacks: per-probe accuracy files and plots, and the run configuration saved where the run lives."""
+from __future__ import annotations
+
+import csv
+import io
+import os
+import tempfile
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import pytorch_lightning as pl  # noqa: E402
+import yaml  # noqa: E402
+from pytorch_lightning.cli import SaveConfigCallback  # noqa: E402
+from pytorch_lightning.loggers import WandbLogger  # noqa: E402
+from pytorch_lightning.utilities import rank_zero_only  # noqa: E402
+
+
+def run_dir(trainer: pl.Trainer) -> Path:
+    """The run's own folder: the wandb run's files folder (synced with the run), else the trainer's log dir."""
+    logger = trainer.logger
+    if isinstance(logger, WandbLogger) and getattr(logger.experiment, "dir", None):
+        return Path(logger.experiment.dir)
+    return Path(trainer.log_dir or trainer.default_root_dir)
+
+
+def write_atomic(path: Path, data: bytes | str) -> None:
+    """Write to a temporary file beside `path`, then rename: a kill never leaves a half-written file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.NamedTemporaryFile("wb", dir=path.parent, prefix=f".{path.name}.", delete=False) as tmp:
+        tmp.write(data.encode() if isinstance(data, str) else data)
+    os.replace(tmp.name, path)
+
+
+def per_probe_table(metrics: dict, stage: str, n_probes: int) -> dict[str, list[float]]:
+    """Columns of accuracy after probe k = 1..N found in logged metrics: stochastic and mean-action rollouts."""
+    columns = {}
+    for label, suffix in (("stochastic", ""), ("mean_action", "_mean_action")):
+        keys = [f"{stage}/acc{suffix}@{k}" for k in range(1, n_probes + 1)]
+        if all(k in metrics for k in keys):
+            columns[label] = [float(metrics[k]) for k in keys]
+    return columns
+
+
+class PerProbeAccuracy(pl.Callback):
+    """At test end: per_probe_accuracy.csv and .png in the run directory, the same logged to wandb, and the
+    table printed. Accuracy after probe k is logged during evaluation as `val/acc@k` and `test/acc@k`."""
+
+    @rank_zero_only
+    def on_test_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        n_probes = pl_module.hparams.n_probes
+        columns = per_probe_table(trainer.callback_metrics, "test", n_probes)
+        if not columns:
+            return
+        folder = run_dir(trainer)
+        text = io.StringIO()
+        writer = csv.writer(text)
+        writer.writerow(["probes", *columns])
+        rows = [[k + 1, *(round(v[k], 4) for v in columns.values())] for k in range(n_probes)]
+        writer.writerows(rows)
+        write_atomic(folder / "per_probe_accuracy.csv", text.getvalue())
+        plot_path = folder / "per_probe_accuracy.png"
+        write_atomic(plot_path, accuracy_plot({f"{pl_module.hparams.policy} ({label} rollout)": values
+                                               for label, values in columns.items()}))
+        if isinstance(trainer.logger, WandbLogger):
+            trainer.logger.log_table("test/per_probe_accuracy", columns=["probes", *columns], data=rows)
+            trainer.logger.log_image("test/per_probe_accuracy_plot", images=[str(plot_path)])
+        header = "probes | " + " | ".join(f"{c:>11s}" for c in columns)
+        print(f"\nTest accuracy after each probe (single rollout, {pl_module.hparams.policy} policy):\n{header}")
+        for row in rows:
+            print(f"{row[0]:6d} | " + " | ".join(f"{v:11.3f}" for v in row[1:]))
+        print(f"written: {folder / 'per_probe_accuracy.csv'}, {plot_path}")
+
+
+def accuracy_plot(curves: dict[str, list[float]], title: str = "Accuracy after each probe (held-out test poses)",
+                  reference: dict[str, dict[int, float]] | None = None) -> bytes:
+    """PNG bytes of accuracy-vs-probes curves; `reference` curves ({probe: accuracy}, e.g. the paper's) dashed."""
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
+    for name, values in curves.items():
+        ax.plot(range(1, len(values) + 1), values, marker="o", label=name)
+    for name, points in (reference or {}).items():
+        ax.plot(list(points), list(points.values()), "--", label=name)
+    ax.set(xlabel="probes", ylabel="accuracy", ylim=(0, 1.02), title=title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    buffer = io.BytesIO()
+    fig.tight_layout()
+    fig.savefig(buffer, format="png")
+    plt.close(fig)
+    return buffer.getvalue()
+
+
+class RunDirSaveConfig(SaveConfigCallback):
+    """Saves the full config into the run directory and into the logger's hyperparameters.
+
+    Lightning's default writes config.yaml into trainer.log_dir, which for WandbLogger is the shared save_dir,
+    so a second `fit` there aborts; every run has its own folder instead.
+    """
+
+    def save_config(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:
+        if trainer.is_global_zero:
+            config = self.parser.dump(self.config, skip_none=False)
+            write_atomic(run_dir(trainer) / self.config_filename, config)
+            if trainer.logger is not None:
+                trainer.logger.log_hyperparams({"config": yaml.safe_load(config)})

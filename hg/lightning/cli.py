@@ -1,0 +1,52 @@
+"""`hg`: Lightning's own CLI (fit, validate, test, predict) over HapticGlance and ProbeDataModule."""
+from __future__ import annotations
+
+import os
+import sys
+
+from pytorch_lightning.callbacks import ModelCheckpoint
+from pytorch_lightning.cli import LightningArgumentParser, LightningCLI
+
+from hg.lightning.callbacks import PerProbeAccuracy, RunDirSaveConfig
+from hg.lightning.data import ProbeDataModule
+from hg.lightning.module import HapticGlance
+
+TRAINER_DEFAULTS = {
+    "logger": {"class_path": "pytorch_lightning.loggers.WandbLogger",
+               "init_args": {"project": "haptic-glance", "offline": True, "save_dir": "runs"}},
+    "max_steps": 8000,
+    "val_check_interval": 500,
+    "check_val_every_n_epoch": None,  # the training stream is endless: validate every val_check_interval steps
+    "log_every_n_steps": 25,
+    "num_sanity_val_steps": 0,
+    "accelerator": "cpu",
+    "deterministic": True,
+}
+
+
+class HapticCLI(LightningCLI):
+    def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
+        parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
+        parser.set_defaults({"checkpoint.monitor": "val/acc", "checkpoint.mode": "max", "checkpoint.save_last": True,
+                             "checkpoint.filename": "best-step{step}", "checkpoint.auto_insert_metric_name": False})
+        parser.add_lightning_class_args(PerProbeAccuracy, "per_probe_accuracy")
+        parser.link_arguments("seed_everything", "data.seed")
+        parser.link_arguments("data.n_probes", "model.n_probes")
+        parser.link_arguments("data", "model.n_classes", compute_fn=lambda data: len(data.object_set),
+                              apply_on="instantiate")
+
+
+def cli(args: list[str] | None = None, run: bool = True) -> HapticCLI:
+    os.environ.setdefault("WANDB_MODE", "offline")  # no internet here: runs are synced later with `wandb sync`
+    return HapticCLI(HapticGlance, ProbeDataModule, seed_everything_default=0, trainer_defaults=TRAINER_DEFAULTS,
+                     save_config_callback=RunDirSaveConfig, save_config_kwargs={"save_to_log_dir": False,
+                                                                                 "overwrite": True},
+                     args=args, run=run)
+
+
+def main() -> None:
+    cli(sys.argv[1:])
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,203 @@
+"""HapticGlance: rollouts in the simulator and the hybrid update rule (paper sec. 2.2 (d)) in Lightning."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import pytorch_lightning as pl
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from hg.nets import PCRN, Baseline, FCClassifier, LinearClassifier, LocationNetwork, LSTMEncoder, NClassClassifier
+from hg.sim import ProbeSimulator
+from hg.sim.robot import achieved
+
+COMPONENTS = ("py", "ux", "uy", "uz")
+
+
+def discounted_returns(rewards: Tensor, gamma: float) -> Tensor:
+    """G_k = sum_{j >= k} gamma^(j - k) r_j over the probe axis (B, N): the return of request k (eq. 3)."""
+    returns = torch.zeros_like(rewards)
+    running = torch.zeros_like(rewards[:, 0])
+    for k in range(rewards.shape[1] - 1, -1, -1):
+        running = rewards[:, k] + gamma * running
+        returns[:, k] = running
+    return returns
+
+
+def hybrid_loss(logits: Tensor, labels: Tensor, log_pi: Tensor | None, baseline: Tensor | None, gamma: float,
+                beta: float) -> dict[str, Tensor]:
+    """The hybrid update rule, eq. (6), as a loss to minimise; every term is returned for logging.
+
+    logits (B, N, C): prediction after each probe; log_pi (B, N): log pi(a_k | s_k) of the detached requests;
+    baseline (B, N): b_k from detached states. Without a policy to train (random, line scan) only the
+    cross-entropy remains.
+    """
+    n_probes = logits.shape[1]
+    rewards = (logits.argmax(-1) == labels[:, None]).float()  # r_k = 1 when the prediction after probe k is right
+    # sum_o y_o log pi_c(o), on the prediction after every probe
+    cross_entropy = F.cross_entropy(logits.flatten(0, 1), labels.repeat_interleave(n_probes))
+    terms = {"loss_ce": cross_entropy, "reward": rewards.mean()}
+    if log_pi is None:
+        terms["loss"] = cross_entropy
+        return terms
+    returns = discounted_returns(rewards, gamma)  # G_k, eq. (3); rewards come from argmax: no gradient
+    advantage = (returns - baseline).detach()  # (G_k - b_k): the baseline reduces variance, never the gradient path
+    policy = -(log_pi * advantage).mean()  # autograd of log N(x; mu, sigma) gives xi_mu, xi_sigma of eq. (4), (5)
+    baseline_mse = F.mse_loss(baseline, returns)  # b_k is fitted to the return
+    terms.update(loss_policy=policy, loss_baseline=baseline_mse, loss=cross_entropy + beta * policy + baseline_mse)
+    return terms
+
+
+@dataclass
+class Rollout:
+    """N probes of B episodes: what the policy asked for and what the sensor returned."""
+
+    actions: Tensor  # (B, N, 4) raw Gaussian samples (the log-probability is taken of these)
+    requests: Tensor  # (B, N, 4) the requests executed: actions clipped to [-1, 1]
+    points: Tensor  # (B, N, 4) X, Y, Z scaled by point_scale, and T
+    reached: Tensor  # (B, N) bool: the arm achieved the request within 5 mm and 3 degrees
+
+
+class HapticGlance(pl.LightningModule):
+    """PCRN (or the LSTM baseline) with a location network, a baseline and a classifier, trained by eq. (6).
+
+    The probe policy is `learned` (the paper), or `random` / `line_scan` with the same classifier: the
+    ablations that show what the learned exploration buys.
+    """
+
+    def __init__(self, n_classes: int = 4, n_probes: int = 10, encoder: Literal["pcrn", "lstm"] = "pcrn",
+                 classifier: Literal["fc", "nclass", "linear"] = "fc",
+                 policy: Literal["learned", "random", "line_scan"] = "learned", width: int = 128,
+                 representation: int = 256, hidden: int = 256, std_floor: float = 0.05, std_max: float = 1.0,
+                 gamma: float = 0.95, beta: float = 1.0, lr: float = 1e-3, point_scale: float = 2.0) -> None:
+        super().__init__()
+        if n_probes < 1:
+            raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
+        if not 0.0 <= gamma <= 1.0:
+            raise ValueError(f"model.gamma={gamma}: the discount must be in [0, 1]")
+        self.save_hyperparameters()
+        if encoder == "pcrn":
+            self.encoder = PCRN(width=width, out_dim=representation)
+        elif encoder == "lstm":
+            self.encoder = LSTMEncoder(hidden=representation)
+        else:
+            raise ValueError(f"model.encoder={encoder!r}: expected 'pcrn' or 'lstm'")
+        dim = self.encoder.out_dim
+        classifiers = {"fc": lambda: FCClassifier(dim, n_classes, hidden),
+                       "nclass": lambda: NClassClassifier(dim, n_classes, n_probes, hidden),
+                       "linear": lambda: LinearClassifier(dim, n_classes)}
+        if classifier not in classifiers:
+            raise ValueError(f"model.classifier={classifier!r}: expected one of {sorted(classifiers)}")
+        if policy not in ("learned", "random", "line_scan"):
+            raise ValueError(f"model.policy={policy!r}: expected 'learned', 'random' or 'line_scan'")
+        self.classifier = classifiers[classifier]()
+        self.location = LocationNetwork(dim, hidden=128, std_floor=std_floor, std_max=std_max)
+        self.baseline = Baseline(dim)
+        self.sim: ProbeSimulator | None = None
+
+    # -- simulator -----------------------------------------------------------------------------------
+    def setup(self, stage: str) -> None:
+        if self.sim is None:
+            self.sim = self.trainer.datamodule.make_simulator()
+
+    def teardown(self, stage: str) -> None:
+        if self.sim is not None:
+            self.sim.close()
+            self.sim = None
+
+    # -- rollout -------------------------------------------------------------------------------------
+    def next_actions(self, requests: Tensor, points: Tensor, deterministic: bool,
+                     generator: torch.Generator) -> Tensor:
+        """Request k + 1 of every episode from the first k requests and points (k may be 0)."""
+        batch, k = requests.shape[:2]
+        policy = self.hparams.policy
+        if policy == "random":
+            return torch.rand(batch, 4, generator=generator) * 2 - 1
+        if policy == "line_scan":  # evenly spaced along the probe line, straight down
+            n = self.hparams.n_probes
+            py = -1.0 + 2.0 * k / (n - 1) if n > 1 else 0.0
+            return torch.tensor([py, 0.0, 0.0, 1.0]).expand(batch, 4).clone()
+        rep = self.encoder(requests, points) if k > 0 else None
+        state = self.location.state(rep, k, batch_size=batch)
+        return self.location.sample(state, deterministic=deterministic, generator=generator)[0]
+
+    @torch.no_grad()
+    def rollout(self, labels: Tensor, poses: Tensor, seed: int, deterministic: bool = False) -> Rollout:
+        """Probe B episodes N times with the current policy; the batch seed drives sampling and sensor noise."""
+        sim, n = self.sim, self.hparams.n_probes
+        batch = len(labels)
+        sim.reset(labels.cpu().numpy(), poses.cpu().numpy(), seed=seed)
+        generator = torch.Generator().manual_seed(seed)
+        actions, points = torch.zeros(batch, n, 4), torch.zeros(batch, n, 4)
+        reached = torch.ones(batch, n, dtype=torch.bool)
+        for k in range(n):
+            action = self.next_actions(actions[:, :k].clamp(-1, 1).to(self.device), points[:, :k].to(self.device),
+                                       deterministic, generator).cpu()
+            if not torch.isfinite(action).all():
+                raise FloatingPointError(f"non-finite probe request from the '{self.hparams.policy}' policy at probe "
+                                         f"{k + 1}, global step {self.global_step}")
+            actions[:, k] = action
+            result = sim.probe(action.clamp(-1, 1).double().numpy())
+            points[:, k] = torch.from_numpy(result.points).float()
+            if sim.arm is not None:
+                reached[:, k] = torch.from_numpy(achieved(result.pose_error))
+        points[..., :3] *= self.hparams.point_scale
+        device = self.device
+        return Rollout(actions.to(device), actions.clamp(-1, 1).to(device), points.to(device), reached.to(device))
+
+    # -- loss ----------------------------------------------------------------------------------------
+    def evaluate(self, rollout: Rollout, labels: Tensor) -> tuple[dict[str, Tensor], Tensor]:
+        """Forward pass over a finished rollout: the loss terms and the logits (B, N, C)."""
+        rep = self.encoder(rollout.requests, rollout.points)
+        logits = self.classifier(rep)
+        log_pi = baseline = None
+        if self.hparams.policy == "learned":
+            states = self.location.states(rep)  # s_k from which request k was drawn
+            log_pi = self.location.log_prob(states, rollout.actions)
+            baseline = self.baseline(states.detach())
+        terms = hybrid_loss(logits, labels, log_pi, baseline, self.hparams.gamma, self.hparams.beta)
+        if log_pi is not None:
+            with torch.no_grad():  # too large a std is the usual cause of poor accuracy: watch it
+                sigma = self.location.distribution(states, rollout.actions)[1].mean((0, 1))
+            terms.update({f"std_{c}": sigma[i] for i, c in enumerate(COMPONENTS)})
+        return terms, logits
+
+    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
+        labels = batch["labels"]
+        rollout = self.rollout(labels, batch["poses"], int(batch["seed"]))
+        terms, logits = self.evaluate(rollout, labels)
+        if not torch.isfinite(terms["loss"]):
+            raise FloatingPointError(f"non-finite loss {terms['loss'].item()} at global step {self.global_step} "
+                                     f"(terms: { {k: round(v.item(), 4) for k, v in terms.items()} })")
+        size = len(labels)
+        self.log_dict({f"train/{k}": v for k, v in terms.items()}, batch_size=size, prog_bar=False)
+        correct = (logits.argmax(-1) == labels[:, None]).float().mean(0)
+        self.log("train/acc", correct[-1], batch_size=size, prog_bar=True)
+        self.log("train/touch_rate", rollout.points[..., 3].mean(), batch_size=size)
+        self.log("train/reach_rate", rollout.reached.float().mean(), batch_size=size)
+        return terms["loss"]
+
+    def _eval_step(self, batch: dict[str, Tensor], stage: str) -> None:
+        """Single-rollout accuracy after each probe: the stochastic policy, and for a learned policy also the
+        mean-action policy, each labelled; never an average over several rollouts."""
+        labels, seed = batch["labels"], int(batch["seed"])
+        variants = [("", False)] + ([("_mean_action", True)] if self.hparams.policy == "learned" else [])
+        for suffix, deterministic in variants:
+            rollout = self.rollout(labels, batch["poses"], seed, deterministic=deterministic)
+            _, logits = self.evaluate(rollout, labels)
+            correct = (logits.argmax(-1) == labels[:, None]).float().mean(0)
+            metrics = {f"{stage}/acc{suffix}@{k + 1}": correct[k] for k in range(len(correct))}
+            metrics[f"{stage}/acc{suffix}"] = correct[-1]
+            metrics[f"{stage}/touch_rate{suffix}"] = rollout.points[..., 3].mean()
+            self.log_dict(metrics, batch_size=len(labels), sync_dist=True)
+
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self._eval_step(batch, "val")
+
+    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        self._eval_step(batch, "test")
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
