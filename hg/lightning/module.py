@@ -27,7 +27,7 @@ def discounted_returns(rewards: Tensor, gamma: float) -> Tensor:
 
 
 def hybrid_loss(logits: Tensor, labels: Tensor, log_pi: Tensor | None, baseline: Tensor | None, gamma: float,
-                beta: float) -> dict[str, Tensor]:
+                beta: float, normalize_advantage: bool = False) -> dict[str, Tensor]:
     """The hybrid update rule, eq. (6), as a loss to minimise; every term is returned for logging.
 
     logits (B, N, C): prediction after each probe; log_pi (B, N): log pi(a_k | s_k) of the detached requests;
@@ -44,6 +44,8 @@ def hybrid_loss(logits: Tensor, labels: Tensor, log_pi: Tensor | None, baseline:
         return terms
     returns = discounted_returns(rewards, gamma)  # G_k, eq. (3); rewards come from argmax: no gradient
     advantage = (returns - baseline).detach()  # (G_k - b_k): the baseline reduces variance, never the gradient path
+    if normalize_advantage:  # beyond the paper: unit-scale advantages per probe index keep eq. (3) well scaled
+        advantage = advantage / (advantage.std(0, keepdim=True) + 1e-6)
     policy = -(log_pi * advantage).mean()  # autograd of log N(x; mu, sigma) gives xi_mu, xi_sigma of eq. (4), (5)
     baseline_mse = F.mse_loss(baseline, returns)  # b_k is fitted to the return
     terms.update(loss_policy=policy, loss_baseline=baseline_mse, loss=cross_entropy + beta * policy + baseline_mse)
@@ -71,7 +73,8 @@ class HapticGlance(pl.LightningModule):
                  classifier: Literal["fc", "nclass", "linear"] = "fc",
                  policy: Literal["learned", "random", "line_scan"] = "learned", width: int = 128,
                  representation: int = 256, hidden: int = 256, std_floor: float = 0.05, std_max: float = 1.0,
-                 gamma: float = 0.95, beta: float = 1.0, lr: float = 1e-3, point_scale: float = 2.0) -> None:
+                 gamma: float = 0.95, beta: float = 1.0, lr: float = 1e-3, point_scale: float = 2.0,
+                 normalize_advantage: bool = False, policy_reads_detached: bool = False) -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -154,10 +157,12 @@ class HapticGlance(pl.LightningModule):
         logits = self.classifier(rep)
         log_pi = baseline = None
         if self.hparams.policy == "learned":
-            states = self.location.states(rep)  # s_k from which request k was drawn
+            # s_k from which request k was drawn; beyond the paper, the policy may read it without training the encoder
+            states = self.location.states(rep.detach() if self.hparams.policy_reads_detached else rep)
             log_pi = self.location.log_prob(states, rollout.actions)
             baseline = self.baseline(states.detach())
-        terms = hybrid_loss(logits, labels, log_pi, baseline, self.hparams.gamma, self.hparams.beta)
+        h = self.hparams
+        terms = hybrid_loss(logits, labels, log_pi, baseline, h.gamma, h.beta, h.normalize_advantage)
         if log_pi is not None:
             with torch.no_grad():  # too large a std is the usual cause of poor accuracy: watch it
                 sigma = self.location.distribution(states, rollout.actions)[1].mean((0, 1))

@@ -1,0 +1,99 @@
+"""Times real training steps (Trainer.fit) of a config on this machine and projects its full protocol.
+
+The step time is split into simulator (reset + probes), forward (policy rollout forwards, the loss pass and
+Lightning's bookkeeping) and backward (backward + optimizer step). Validation is timed once and counted
+max_steps / val_check_interval times in the projection. Last line: JSON with steps_per_s, sim_fraction,
+projected_paper_minutes and the split.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+
+import pytorch_lightning as pl
+
+from hg.lightning.cli import cli
+
+
+class StepTimer(pl.Callback):
+    """Wall time per training step and the parts of it spent in the simulator and in backward."""
+
+    def __init__(self, warmup: int) -> None:
+        self.warmup, self.step_time, self.sim_time, self.backward_time, self.steps = warmup, 0.0, 0.0, 0.0, 0
+        self._sim_acc = 0.0
+
+    def on_train_start(self, trainer, pl_module) -> None:
+        sim = pl_module.sim
+        for name in ("reset", "probe"):
+            original = getattr(sim, name)
+
+            def timed(*args, _original=original, **kwargs):
+                start = time.perf_counter()
+                try:
+                    return _original(*args, **kwargs)
+                finally:
+                    self._sim_acc += time.perf_counter() - start
+            setattr(sim, name, timed)
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        self._sim_acc, self._backward, self._start = 0.0, 0.0, time.perf_counter()
+
+    def on_before_backward(self, trainer, pl_module, loss) -> None:
+        self._backward_start = time.perf_counter()
+
+    def on_before_optimizer_step(self, trainer, pl_module, optimizer) -> None:
+        self._backward = time.perf_counter() - self._backward_start
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        if trainer.global_step > self.warmup:
+            self.step_time += time.perf_counter() - self._start
+            self.sim_time += self._sim_acc
+            self.backward_time += self._backward
+            self.steps += 1
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--config", default="configs/pcrn_fc.yaml")
+    parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--warmup", type=int, default=10)
+    args, overrides = parser.parse_known_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        protocol = cli(["--config", args.config, *overrides], run=False)
+        paper_steps = protocol.trainer.max_steps
+        val_every = protocol.trainer.val_check_interval
+        timer = StepTimer(args.warmup)
+        run = cli(["--config", args.config, *overrides, "--trainer.logger", "false",
+                   "--trainer.max_steps", str(args.steps + args.warmup), "--trainer.limit_val_batches", "0",
+                   "--trainer.enable_progress_bar", "false", "--trainer.default_root_dir", tmp,
+                   "--checkpoint.dirpath", tmp, "--checkpoint.monitor", "null", "--checkpoint.save_last", "false"],
+                  run=False)
+        run.trainer.callbacks.append(timer)
+        run.trainer.fit(run.model, datamodule=run.datamodule)
+        start = time.perf_counter()
+        validate = cli(["--config", args.config, *overrides, "--trainer.logger", "false",
+                        "--trainer.enable_progress_bar", "false", "--trainer.default_root_dir", tmp], run=False)
+        validate.trainer.validate(run.model, datamodule=validate.datamodule, verbose=False)
+        val_seconds = time.perf_counter() - start
+    step = timer.step_time / timer.steps
+    figures = {
+        "config": args.config,
+        "steps_timed": timer.steps,
+        "steps_per_s": round(1 / step, 2),
+        "step_ms": round(1000 * step, 1),
+        "sim_fraction": round(timer.sim_time / timer.step_time, 3),
+        "forward_fraction": round(1 - (timer.sim_time + timer.backward_time) / timer.step_time, 3),
+        "backward_fraction": round(timer.backward_time / timer.step_time, 3),
+        "validation_s": round(val_seconds, 1),
+        "projected_paper_minutes": round((paper_steps * step + paper_steps // val_every * val_seconds) / 60, 1),
+    }
+    print(f"{figures['step_ms']} ms per step: simulator {figures['sim_fraction']:.0%}, forward "
+          f"{figures['forward_fraction']:.0%}, backward {figures['backward_fraction']:.0%}; one validation "
+          f"{val_seconds:.1f} s; {paper_steps} steps projected at {figures['projected_paper_minutes']} min")
+    print(json.dumps(figures))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,146 @@
+"""The hybrid update rule and the Lightning module on real rollouts in the simulator (ideal mode, tiny nets)."""
+import csv
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from hg.lightning import HapticGlance, ProbeDataModule, discounted_returns, hybrid_loss
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = str(ROOT / "configs" / "tiny.yaml")
+
+
+@pytest.fixture(scope="module")
+def data():
+    return ProbeDataModule(mode="ideal", batch_size=8, eval_batch_size=8, val_episodes=8, test_episodes=8, n_probes=4)
+
+
+def make_model(data, **kwargs):
+    torch.manual_seed(0)
+    model = HapticGlance(n_classes=data.n_classes, n_probes=data.n_probes, width=16, representation=32, hidden=32,
+                         **kwargs)
+    model.sim = data.make_simulator()
+    return model
+
+
+def first_batch(data):
+    return next(iter(data.train_dataloader()))
+
+
+def test_discounted_returns():
+    rewards = torch.tensor([[1.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    expected = torch.tensor([[1 + 0.5 ** 2, 0.5, 1.0], [0.25, 0.5, 1.0]])
+    torch.testing.assert_close(discounted_returns(rewards, 0.5), expected)
+
+
+def grads_of(model, loss):
+    model.zero_grad()
+    loss.backward(retain_graph=True)
+    return {name: any(p.grad is not None and p.grad.abs().sum() > 0 for p in part.parameters())
+            for name, part in (("encoder", model.encoder), ("classifier", model.classifier),
+                               ("location", model.location), ("baseline", model.baseline))}
+
+
+def test_gradient_routing(data):
+    model = make_model(data)
+    batch = first_batch(data)
+    rollout = model.rollout(batch["labels"], batch["poses"], int(batch["seed"]))
+    terms, _ = model.evaluate(rollout, batch["labels"])
+    assert grads_of(model, terms["loss_policy"]) == {"encoder": True, "classifier": False, "location": True,
+                                                      "baseline": False}
+    assert grads_of(model, terms["loss_ce"]) == {"encoder": True, "classifier": True, "location": False,
+                                                  "baseline": False}
+    assert grads_of(model, terms["loss_baseline"]) == {"encoder": False, "classifier": False, "location": False,
+                                                        "baseline": True}
+
+
+def test_policy_term_uses_detached_advantage():
+    logits = torch.randn(5, 3, 4, requires_grad=True)
+    labels = torch.randint(4, (5,))
+    log_pi = torch.randn(5, 3, requires_grad=True)
+    baseline = torch.randn(5, 3, requires_grad=True)
+    terms = hybrid_loss(logits, labels, log_pi, baseline, gamma=0.9, beta=1.0)
+    (grad_b,) = torch.autograd.grad(terms["loss_policy"], baseline, allow_unused=True)
+    assert grad_b is None
+    rewards = (logits.argmax(-1) == labels[:, None]).float()
+    (grad_pi,) = torch.autograd.grad(terms["loss_policy"], log_pi)
+    torch.testing.assert_close(grad_pi, -(discounted_returns(rewards, 0.9) - baseline.detach()) / log_pi.numel())
+
+
+def test_rollout_is_a_function_of_the_batch_seed(data):
+    model = make_model(data)
+    batch = first_batch(data)
+    first = model.rollout(batch["labels"], batch["poses"], 7)
+    model.rollout(batch["labels"], batch["poses"], 8)  # other work in between changes nothing
+    again = model.rollout(batch["labels"], batch["poses"], 7)
+    torch.testing.assert_close(first.points, again.points)
+    torch.testing.assert_close(first.actions, again.actions)
+    mean_action = model.rollout(batch["labels"], batch["poses"], 7, deterministic=True)
+    assert not torch.equal(first.actions, mean_action.actions)
+
+
+@pytest.mark.parametrize("policy", ["random", "line_scan"])
+def test_ablation_policies(data, policy):
+    model = make_model(data, policy=policy)
+    batch = first_batch(data)
+    rollout = model.rollout(batch["labels"], batch["poses"], 3)
+    terms, logits = model.evaluate(rollout, batch["labels"])
+    assert set(terms) == {"loss", "loss_ce", "reward"} and logits.shape == (8, 4, 4)
+    if policy == "line_scan":
+        torch.testing.assert_close(rollout.requests[0, :, 0], torch.linspace(-1, 1, 4))
+        assert (rollout.requests[..., 3] == 1).all()
+    else:
+        assert rollout.requests[..., 0].std() > 0.3
+
+
+def test_eval_sets_are_fixed_and_disjoint_from_training():
+    one = ProbeDataModule(mode="ideal", val_episodes=40, test_episodes=40, eval_batch_size=16, seed=1)
+    two = ProbeDataModule(mode="ideal", val_episodes=40, test_episodes=40, eval_batch_size=16, seed=2)
+    for a, b in zip(one.test_dataloader(), two.test_dataloader()):
+        torch.testing.assert_close(a["poses"], b["poses"])  # the training seed never changes the test set
+    train = next(iter(one.train_dataloader()))
+    assert (one.regions.split_of(train["poses"].numpy()) == 0).all()
+    assert (one.regions.split_of(next(iter(one.test_dataloader()))["poses"].numpy()) == 2).all()
+
+
+# -- the CLI, end to end in subprocesses ---------------------------------------------------------------
+def hg(*args, cwd):
+    env = {**os.environ, "WANDB_MODE": "offline", "WANDB_SILENT": "true"}
+    proc = subprocess.run([sys.executable, "-m", "hg.lightning.cli", *args], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc
+
+
+def latest_csv(folder):
+    files = sorted(Path(folder).glob("runs/wandb/offline-run-*/files/per_probe_accuracy.csv"),
+                   key=lambda p: p.stat().st_mtime)
+    return list(csv.reader(files[-1].open()))
+
+
+def test_fit_then_test_from_checkpoint(tmp_path):
+    hg("fit", "--config", TINY, cwd=tmp_path)
+    checkpoints = list(tmp_path.glob("runs/haptic-glance/*/checkpoints/last.ckpt"))
+    assert len(checkpoints) == 1
+    runs = list(tmp_path.glob("runs/wandb/offline-run-*"))
+    assert len(runs) == 1 and (runs[0] / "files" / "config.yaml").is_file()
+    assert list(runs[0].glob("*.wandb"))
+    hg("test", "--config", TINY, "--ckpt_path", str(checkpoints[0]), cwd=tmp_path)
+    first = latest_csv(tmp_path)
+    hg("test", "--config", TINY, "--ckpt_path", str(checkpoints[0]), cwd=tmp_path)
+    assert latest_csv(tmp_path) == first
+    assert first[0] == ["probes", "stochastic", "mean_action"] and len(first) == 1 + 4
+
+
+def test_same_seed_same_training(tmp_path):
+    for _ in range(2):  # the second fit in the same folder must work too
+        hg("fit", "--config", TINY, "--seed_everything", "5", cwd=tmp_path)
+    states = [torch.load(p, weights_only=False)["state_dict"]
+              for p in sorted(tmp_path.glob("runs/haptic-glance/*/checkpoints/last.ckpt"))]
+    assert len(states) == 2 and states[0].keys() == states[1].keys()
+    for key in states[0]:
+        torch.testing.assert_close(states[0][key], states[1][key])
