@@ -83,13 +83,24 @@ def test_rollout_is_a_function_of_the_batch_seed(data):
     assert not torch.equal(first.actions, mean_action.actions)
 
 
+def test_log_prob_is_taken_under_the_policy_that_acted(data):
+    """The states rebuilt for the loss must be those the rollout sampled from: the mean-action rollout's
+    requests are then exactly the means the loss pass computes."""
+    model = make_model(data)
+    batch = first_batch(data)
+    rollout = model.rollout(batch["labels"], batch["poses"], 1, deterministic=True)
+    states = model.location.states(model.encoder(rollout.requests, rollout.points))
+    mu, _ = model.location.distribution(states, rollout.actions)
+    torch.testing.assert_close(rollout.actions, mu)
+
+
 @pytest.mark.parametrize("policy", ["random", "line_scan"])
 def test_ablation_policies(data, policy):
     model = make_model(data, policy=policy)
     batch = first_batch(data)
     rollout = model.rollout(batch["labels"], batch["poses"], 3)
     terms, logits = model.evaluate(rollout, batch["labels"])
-    assert set(terms) == {"loss", "loss_ce", "reward"} and logits.shape == (8, 4, 4)
+    assert set(terms) == {"loss", "loss_ce", "reward", "acc"} and logits.shape == (8, 4, 4)
     if policy == "line_scan":
         torch.testing.assert_close(rollout.requests[0, :, 0], torch.linspace(-1, 1, 4))
         assert (rollout.requests[..., 3] == 1).all()

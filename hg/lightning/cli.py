@@ -45,7 +45,14 @@ def cli(args: list[str] | None = None, run: bool = True) -> HapticCLI:
 
 
 def main() -> None:
-    cli(sys.argv[1:])
+    """Bad input ends in one line naming the field or file, and a non-zero exit (HG_TRACEBACK=1 for the wall)."""
+    try:
+        cli(sys.argv[1:])
+    except (ValueError, FileNotFoundError, FloatingPointError) as exc:
+        if os.environ.get("HG_TRACEBACK"):
+            raise
+        print(f"hg: error: {exc}", file=sys.stderr)
+        sys.exit(2)
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ resume exactly, and `hg test` gives the same numbers twice.
 from __future__ import annotations
 
 from dataclasses import asdict
+from pathlib import Path
 
 import numpy as np
 import pytorch_lightning as pl
@@ -75,6 +76,8 @@ class ProbeDataModule(pl.LightningDataModule):
                 raise ValueError(f"data.{name}={value}: must be >= 1")
         if mode not in ("arm", "ideal"):
             raise ValueError(f"data.mode={mode!r}: expected 'arm' or 'ideal'")
+        if not Path(robot).is_file():
+            raise FileNotFoundError(f"data.robot={robot}: URDF file not found")
         self.save_hyperparameters()
         self.object_set = load_object_set(objects)
         self.regions = PoseRegions(scene, seed=eval_seed)

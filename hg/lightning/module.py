@@ -27,7 +27,8 @@ def discounted_returns(rewards: Tensor, gamma: float) -> Tensor:
 
 
 def hybrid_loss(logits: Tensor, labels: Tensor, log_pi: Tensor | None, baseline: Tensor | None, gamma: float,
-                beta: float, normalize_advantage: bool = False) -> dict[str, Tensor]:
+                beta: float, normalize_advantage: bool = False, reward: Literal["correct", "probability"] = "correct",
+                touches: Tensor | None = None, touch_bonus: float = 0.0) -> dict[str, Tensor]:
     """The hybrid update rule, eq. (6), as a loss to minimise; every term is returned for logging.
 
     logits (B, N, C): prediction after each probe; log_pi (B, N): log pi(a_k | s_k) of the detached requests;
@@ -35,14 +36,20 @@ def hybrid_loss(logits: Tensor, labels: Tensor, log_pi: Tensor | None, baseline:
     cross-entropy remains.
     """
     n_probes = logits.shape[1]
-    rewards = (logits.argmax(-1) == labels[:, None]).float()  # r_k = 1 when the prediction after probe k is right
+    correct = (logits.argmax(-1) == labels[:, None]).float()
+    if reward == "correct":
+        rewards = correct  # r_k = 1 when the prediction after probe k is right (the paper)
+    else:  # beyond the paper: the classifier's probability of the right class, a graded version of the same reward
+        rewards = logits.detach().softmax(-1).gather(-1, labels[:, None, None].expand(-1, n_probes, 1)).squeeze(-1)
+    if touch_bonus:  # beyond the paper: a small reward for touching the object at all
+        rewards = rewards + touch_bonus * touches
     # sum_o y_o log pi_c(o), on the prediction after every probe
     cross_entropy = F.cross_entropy(logits.flatten(0, 1), labels.repeat_interleave(n_probes))
-    terms = {"loss_ce": cross_entropy, "reward": rewards.mean()}
+    terms = {"loss_ce": cross_entropy, "reward": rewards.mean(), "acc": correct[:, -1].mean()}
     if log_pi is None:
         terms["loss"] = cross_entropy
         return terms
-    returns = discounted_returns(rewards, gamma)  # G_k, eq. (3); rewards come from argmax: no gradient
+    returns = discounted_returns(rewards, gamma)  # G_k, eq. (3); rewards carry no gradient
     advantage = (returns - baseline).detach()  # (G_k - b_k): the baseline reduces variance, never the gradient path
     if normalize_advantage:  # beyond the paper: unit-scale advantages per probe index keep eq. (3) well scaled
         advantage = advantage / (advantage.std(0, keepdim=True) + 1e-6)
@@ -74,7 +81,9 @@ class HapticGlance(pl.LightningModule):
                  policy: Literal["learned", "random", "line_scan"] = "learned", width: int = 128,
                  representation: int = 256, hidden: int = 256, std_floor: float = 0.05, std_max: float = 1.0,
                  gamma: float = 0.95, beta: float = 1.0, lr: float = 1e-3, point_scale: float = 2.0,
-                 normalize_advantage: bool = False, policy_reads_detached: bool = False) -> None:
+                 normalize_advantage: bool = False, policy_reads_detached: bool = False,
+                 reward: Literal["correct", "probability"] = "correct", policy_lr_scale: float = 1.0,
+                 touch_bonus: float = 0.0) -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -144,9 +153,9 @@ class HapticGlance(pl.LightningModule):
             actions[:, k] = action
             result = sim.probe(action.clamp(-1, 1).double().numpy())
             points[:, k] = torch.from_numpy(result.points).float()
+            points[:, k, :3] *= self.hparams.point_scale  # the policy must see what evaluate() will see
             if sim.arm is not None:
                 reached[:, k] = torch.from_numpy(achieved(result.pose_error))
-        points[..., :3] *= self.hparams.point_scale
         device = self.device
         return Rollout(actions.to(device), actions.clamp(-1, 1).to(device), points.to(device), reached.to(device))
 
@@ -162,7 +171,8 @@ class HapticGlance(pl.LightningModule):
             log_pi = self.location.log_prob(states, rollout.actions)
             baseline = self.baseline(states.detach())
         h = self.hparams
-        terms = hybrid_loss(logits, labels, log_pi, baseline, h.gamma, h.beta, h.normalize_advantage)
+        terms = hybrid_loss(logits, labels, log_pi, baseline, h.gamma, h.beta, h.normalize_advantage, h.reward,
+                            rollout.points[..., 3], h.touch_bonus)
         if log_pi is not None:
             with torch.no_grad():  # too large a std is the usual cause of poor accuracy: watch it
                 sigma = self.location.distribution(states, rollout.actions)[1].mean((0, 1))
@@ -172,14 +182,12 @@ class HapticGlance(pl.LightningModule):
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         labels = batch["labels"]
         rollout = self.rollout(labels, batch["poses"], int(batch["seed"]))
-        terms, logits = self.evaluate(rollout, labels)
+        terms, _ = self.evaluate(rollout, labels)
         if not torch.isfinite(terms["loss"]):
             raise FloatingPointError(f"non-finite loss {terms['loss'].item()} at global step {self.global_step} "
                                      f"(terms: { {k: round(v.item(), 4) for k, v in terms.items()} })")
         size = len(labels)
         self.log_dict({f"train/{k}": v for k, v in terms.items()}, batch_size=size, prog_bar=False)
-        correct = (logits.argmax(-1) == labels[:, None]).float().mean(0)
-        self.log("train/acc", correct[-1], batch_size=size, prog_bar=True)
         self.log("train/touch_rate", rollout.points[..., 3].mean(), batch_size=size)
         self.log("train/reach_rate", rollout.reached.float().mean(), batch_size=size)
         return terms["loss"]
@@ -205,4 +213,9 @@ class HapticGlance(pl.LightningModule):
         self._eval_step(batch, "test")
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
-        return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
+        """Adam; beyond the paper, the location network may learn on a slower time scale than the classifier."""
+        location = set(self.location.parameters())
+        rest = [p for p in self.parameters() if p not in location]
+        return torch.optim.Adam([{"params": rest},
+                                 {"params": list(location), "lr": self.hparams.lr * self.hparams.policy_lr_scale}],
+                                lr=self.hparams.lr)
