@@ -13,6 +13,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pytorch_lightning as pl  # noqa: E402
 import yaml  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
 from pytorch_lightning.cli import SaveConfigCallback  # noqa: E402
 from pytorch_lightning.loggers import WandbLogger  # noqa: E402
 from pytorch_lightning.utilities import rank_zero_only  # noqa: E402
@@ -83,6 +84,7 @@ def accuracy_plot(curves: dict[str, list[float]], title: str = "Accuracy after e
     for name, points in (reference or {}).items():
         ax.plot(list(points), list(points.values()), "--", label=name)
     ax.set(xlabel="probes", ylabel="accuracy", ylim=(0, 1.02), title=title)
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # probe counts are whole numbers
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     buffer = io.BytesIO()

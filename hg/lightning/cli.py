@@ -10,6 +10,7 @@ from pytorch_lightning.cli import LightningArgumentParser, LightningCLI
 from hg.lightning.callbacks import PerProbeAccuracy, RunDirSaveConfig
 from hg.lightning.data import ProbeDataModule
 from hg.lightning.module import HapticGlance
+from hg.lightning.viz import ProbeMaps
 
 TRAINER_DEFAULTS = {
     "logger": {"class_path": "pytorch_lightning.loggers.WandbLogger",
@@ -30,6 +31,7 @@ class HapticCLI(LightningCLI):
         parser.set_defaults({"checkpoint.monitor": "val/acc", "checkpoint.mode": "max", "checkpoint.save_last": True,
                              "checkpoint.filename": "best-step{step}", "checkpoint.auto_insert_metric_name": False})
         parser.add_lightning_class_args(PerProbeAccuracy, "per_probe_accuracy")
+        parser.add_lightning_class_args(ProbeMaps, "probe_maps")  # heat maps and confusion matrices at test end
         parser.link_arguments("seed_everything", "data.seed")
         parser.link_arguments("data.n_probes", "model.n_probes")
         parser.link_arguments("data", "model.n_classes", compute_fn=lambda data: len(data.object_set),

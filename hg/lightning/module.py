@@ -1,6 +1,7 @@
 """HapticGlance: rollouts in the simulator and the hybrid update rule (paper sec. 2.2 (d)) in Lightning."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -27,7 +28,7 @@ def discounted_returns(rewards: Tensor, gamma: float) -> Tensor:
 
 
 def hybrid_loss(logits: Tensor, labels: Tensor, log_pi: Tensor | None, baseline: Tensor | None, gamma: float,
-                beta: float, normalize_advantage: bool = False, reward: Literal["correct", "probability"] = "correct",
+                beta: float, normalize_advantage: bool = False, reward: Literal["correct", "probability", "log_gain"] = "correct",
                 touches: Tensor | None = None, touch_bonus: float = 0.0) -> dict[str, Tensor]:
     """The hybrid update rule, eq. (6), as a loss to minimise; every term is returned for logging.
 
@@ -37,10 +38,13 @@ def hybrid_loss(logits: Tensor, labels: Tensor, log_pi: Tensor | None, baseline:
     """
     n_probes = logits.shape[1]
     correct = (logits.argmax(-1) == labels[:, None]).float()
+    log_p = logits.detach().log_softmax(-1).gather(-1, labels[:, None, None].expand(-1, n_probes, 1)).squeeze(-1)
     if reward == "correct":
         rewards = correct  # r_k = 1 when the prediction after probe k is right (the paper)
-    else:  # beyond the paper: the classifier's probability of the right class, a graded version of the same reward
-        rewards = logits.detach().softmax(-1).gather(-1, labels[:, None, None].expand(-1, n_probes, 1)).squeeze(-1)
+    elif reward == "probability":  # beyond the paper: a graded version of the same reward
+        rewards = log_p.exp()
+    else:  # "log_gain", beyond the paper: what probe k added to log p(true class); sums to log p_N - log(1/C)
+        rewards = torch.diff(log_p, dim=1, prepend=torch.full_like(log_p[:, :1], -math.log(logits.shape[-1])))
     if touch_bonus:  # beyond the paper: a small reward for touching the object at all
         rewards = rewards + touch_bonus * touches
     # sum_o y_o log pi_c(o), on the prediction after every probe
@@ -82,8 +86,8 @@ class HapticGlance(pl.LightningModule):
                  representation: int = 256, hidden: int = 256, std_floor: float = 0.05, std_max: float = 1.0,
                  gamma: float = 0.95, beta: float = 1.0, lr: float = 1e-3, point_scale: float = 2.0,
                  normalize_advantage: bool = False, policy_reads_detached: bool = False,
-                 reward: Literal["correct", "probability"] = "correct", policy_lr_scale: float = 1.0,
-                 touch_bonus: float = 0.0) -> None:
+                 reward: Literal["correct", "probability", "log_gain"] = "correct", policy_lr_scale: float = 1.0,
+                 touch_bonus: float = 0.0, prior: Literal["none", "line_scan"] = "none") -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -108,6 +112,11 @@ class HapticGlance(pl.LightningModule):
         self.location = LocationNetwork(dim, hidden=128, std_floor=std_floor, std_max=std_max)
         self.baseline = Baseline(dim)
         self.sim: ProbeSimulator | None = None
+        if prior not in ("none", "line_scan"):
+            raise ValueError(f"model.prior={prior!r}: expected 'none' or 'line_scan'")
+        # beyond the paper: the learned policy may start from the line scan and learn where to deviate from it
+        self.register_buffer("prior_offsets", torch.atanh(0.9 * self.line_scan_requests()) if prior == "line_scan"
+                             else None, persistent=False)
 
     # -- simulator -----------------------------------------------------------------------------------
     def setup(self, stage: str) -> None:
@@ -127,13 +136,18 @@ class HapticGlance(pl.LightningModule):
         policy = self.hparams.policy
         if policy == "random":
             return torch.rand(batch, 4, generator=generator) * 2 - 1
-        if policy == "line_scan":  # evenly spaced along the probe line, straight down
-            n = self.hparams.n_probes
-            py = -1.0 + 2.0 * k / (n - 1) if n > 1 else 0.0
-            return torch.tensor([py, 0.0, 0.0, 1.0]).expand(batch, 4).clone()
+        if policy == "line_scan":
+            return self.line_scan_requests()[k].expand(batch, 4).clone()
         rep = self.encoder(requests, points) if k > 0 else None
         state = self.location.state(rep, k, batch_size=batch)
-        return self.location.sample(state, deterministic=deterministic, generator=generator)[0]
+        offset = None if self.prior_offsets is None else self.prior_offsets[k]
+        return self.location.sample(state, deterministic=deterministic, generator=generator, offset=offset)[0]
+
+    def line_scan_requests(self) -> Tensor:
+        """(N, 4): evenly spaced along the probe line, straight down."""
+        n = self.hparams.n_probes
+        py = torch.linspace(-1.0, 1.0, n) if n > 1 else torch.zeros(1)
+        return torch.stack([py, torch.zeros(n), torch.zeros(n), torch.ones(n)], 1)
 
     @torch.no_grad()
     def rollout(self, labels: Tensor, poses: Tensor, seed: int, deterministic: bool = False) -> Rollout:
@@ -168,14 +182,14 @@ class HapticGlance(pl.LightningModule):
         if self.hparams.policy == "learned":
             # s_k from which request k was drawn; beyond the paper, the policy may read it without training the encoder
             states = self.location.states(rep.detach() if self.hparams.policy_reads_detached else rep)
-            log_pi = self.location.log_prob(states, rollout.actions)
+            log_pi = self.location.log_prob(states, rollout.actions, self.prior_offsets)
             baseline = self.baseline(states.detach())
         h = self.hparams
         terms = hybrid_loss(logits, labels, log_pi, baseline, h.gamma, h.beta, h.normalize_advantage, h.reward,
                             rollout.points[..., 3], h.touch_bonus)
         if log_pi is not None:
             with torch.no_grad():  # too large a std is the usual cause of poor accuracy: watch it
-                sigma = self.location.distribution(states, rollout.actions)[1].mean((0, 1))
+                sigma = self.location.distribution(states, rollout.actions, self.prior_offsets)[1].mean((0, 1))
             terms.update({f"std_{c}": sigma[i] for i, c in enumerate(COMPONENTS)})
         return terms, logits
 

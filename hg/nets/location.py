@@ -64,14 +64,17 @@ class LocationNetwork(nn.Module):
         start = self.start.expand(rep.shape[0], 1, -1)
         return torch.cat([start, cumulative_mean(rep)[:, :-1]], 1)
 
-    def distribution(self, state: Tensor, action: Tensor) -> tuple[Tensor, Tensor]:
+    def distribution(self, state: Tensor, action: Tensor, offset: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """(mu, sigma) of every component, (..., D), (..., A) -> (..., A) twice; masking lets mu_j, sigma_j
         see only action[..., :j]. mu = tanh(.), sigma = std_floor + (std_max - std_floor) * sigmoid(.)."""
         mu, pre_sigma = self.net(torch.cat([state, action], -1)).chunk(2, -1)
+        if offset is not None:  # a prior request schedule, added before the tanh (beyond the paper)
+            mu = mu + offset
         return torch.tanh(mu), self.std_floor + (self.std_max - self.std_floor) * torch.sigmoid(pre_sigma)
 
     def sample(
-        self, state: Tensor, deterministic: bool = False, generator: torch.Generator | None = None
+        self, state: Tensor, deterministic: bool = False, generator: torch.Generator | None = None,
+        offset: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Draw a_k component by component as in eq. (1); returns the raw (unsquashed, detached) action and
         its (mu, sigma). deterministic=True gives the mean-action policy."""
@@ -83,14 +86,14 @@ class LocationNetwork(nn.Module):
         )
         action = torch.zeros_like(eps)
         for j in range(self.action_dim):
-            mu, sigma = self.distribution(state, action)
+            mu, sigma = self.distribution(state, action, offset)
             action[..., j] = (mu[..., j] + sigma[..., j] * eps[..., j]).detach()
         # The last pass already saw every component a mu_j / sigma_j may read, so (mu, sigma) belong to action.
         return action, mu, sigma
 
-    def log_prob(self, state: Tensor, action: Tensor) -> Tensor:
+    def log_prob(self, state: Tensor, action: Tensor, offset: Tensor | None = None) -> Tensor:
         """log pi(a_k | s_k) summed over components, (..., D), (..., A) -> (...). The action is detached: the
         gradient flows only through mu and sigma, which gives eq. (4)/(5) and, weighted, eq. (3)."""
         action = action.detach()
-        mu, sigma = self.distribution(state, action)
+        mu, sigma = self.distribution(state, action, offset)
         return torch.distributions.Normal(mu, sigma).log_prob(action).sum(-1)

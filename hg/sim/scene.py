@@ -59,9 +59,9 @@ class Scene:
     def request_to_probe(self, requests: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Map requests (py, ux, uy, uz) in [-1, 1] to entry points P (B, 3) and unit directions u (B, 3).
 
-        py moves P along the probe line; (ux, uy) lean the probe towards +x/+y and uz sets how steep it is
-        (uz = 1 steepest): u is (ux tan(t), uy tan(t), -(3 + uz) / 4) normalised, with its tilt clamped to
-        max_tilt_deg, so u_z < 0 always. Values outside [-1, 1] are clipped.
+        py moves P along the probe line; (ux, uy) is the lean (its direction and size, the unit disk) and uz how
+        much of it is used: tan(tilt) = tan(max_tilt) |(ux, uy)| (1 - uz) / 2, so uz = 1 is straight down and
+        u_z < 0 always. Uniform requests give every tilt inside the limit. Values outside [-1, 1] are clipped.
         """
         requests = np.asarray(requests, dtype=np.float64)
         if requests.ndim != 2 or requests.shape[1] != 4:
@@ -71,16 +71,9 @@ class Scene:
             raise ValueError(f"requests: non-finite value {requests[tuple(bad)]} at episode {bad[0]}, component {bad[1]}")
         py, ux, uy, uz = np.clip(requests, -1.0, 1.0).T
         lo, hi = self.probe_y
-        tan_max = math.tan(math.radians(self.max_tilt_deg))
         points = np.zeros((len(requests), 3))
         points[:, 0] = self.probe_x
         points[:, 1] = lo + (py + 1.0) * (0.5 * (hi - lo))
-        direction = np.empty((len(requests), 3))
-        direction[:, 0] = ux * tan_max
-        direction[:, 1] = uy * tan_max
-        direction[:, 2] = -0.25 * (3.0 + uz)
-        # shrink the lean where the tilt exceeds the limit: |lean| <= tan_max * depth
-        lean = np.sqrt(direction[:, 0] ** 2 + direction[:, 1] ** 2)
-        direction[:, :2] *= np.minimum(1.0, tan_max * -direction[:, 2] / np.maximum(lean, 1e-12))[:, None]
-        direction /= np.sqrt((direction ** 2).sum(axis=1))[:, None]
-        return points, direction
+        scale = math.tan(math.radians(self.max_tilt_deg)) * 0.5 * (1.0 - uz) / np.maximum(1.0, np.hypot(ux, uy))
+        direction = np.column_stack([ux * scale, uy * scale, -np.ones(len(requests))])
+        return points, direction / np.sqrt((direction ** 2).sum(axis=1))[:, None]

@@ -89,6 +89,7 @@ class ProbeSimulator:
         soil = c.createVisualShape(c.GEOM_BOX, halfExtents=[1.0, 1.0, 0.001], rgbaColor=[0.55, 0.45, 0.3, 0.4])
         ground = c.createMultiBody(0, ground_shape, soil)
         c.setCollisionFilterGroupMask(ground, -1, GROUND_GROUP, 0)
+        self.ground = ground
         self.bodies = np.zeros((len(self.objects), self.batch_size), dtype=np.int64)
         for k, mesh in enumerate(self.objects.meshes):
             vertices, indices = mesh.vertices.tolist(), mesh.faces.ravel().tolist()

@@ -1,0 +1,118 @@
+"""See what the robot does: one held-out episode per class played by a checkpoint, rendered.
+
+Writes into --out, per class: a PNG per probe (the arm at that probe's pose, rays and touches so far), a GIF of
+them, and the touched points over the object mesh; with --maps also where the policy probes over the whole split
+and the confusion matrices. The world comes from the checkpoint's datamodule settings through the `hg` CLI, with
+--config files and --mode applied on top. The last line printed is JSON listing the files.
+
+    python scripts/render_episode.py --ckpt runs/haptic-glance/<id>/checkpoints/last.ckpt --out docs/img
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import warnings
+from dataclasses import asdict
+from pathlib import Path
+
+import torch
+import yaml
+
+from hg.lightning.cli import cli
+from hg.lightning.data import ProbeDataModule
+from hg.lightning.module import HapticGlance
+from hg.lightning.viz import (Rollouts, arm_simulator, one_per_class, render_episodes, roll_out, rollout_kind,
+                              write_test_maps)
+from hg.sim.render import Camera
+
+LINK_TARGETS = ("seed", "_instantiator")  # data.seed comes from seed_everything in the CLI
+
+
+def load_datamodule(ckpt: Path, configs: list[str], mode: str | None) -> ProbeDataModule:
+    """The checkpoint's ProbeDataModule, rebuilt by the CLI from its saved hyperparameters plus `configs`."""
+    saved = torch.load(ckpt, map_location="cpu", weights_only=False)
+    data = saved.get("datamodule_hyper_parameters")
+    if data is None:
+        raise ValueError(f"{ckpt}: no datamodule hyperparameters saved; was it written by `hg fit`?")
+    config = {"seed_everything": int(data.get("seed", 0)),
+              "data": {k: v for k, v in dict(data).items() if k not in LINK_TARGETS}}
+    with tempfile.NamedTemporaryFile("w", suffix=".yaml", delete=False) as tmp:  # JSON first: Scene, tuples -> YAML
+        yaml.safe_dump(json.loads(json.dumps(config, default=asdict)), tmp)
+    args = ["--config", tmp.name]
+    for path in configs:
+        args += ["--config", path]
+    if mode:
+        args += ["--data.mode", mode]
+    try:
+        with warnings.catch_warnings():  # our own argv is not the CLI's: its warning about both is beside the point
+            warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
+            return cli(args + ["--trainer.logger", "false"], run=False).datamodule
+    finally:
+        Path(tmp.name).unlink()
+
+
+def main(argv: list[str]) -> list[Path]:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--ckpt", required=True, type=Path, help="checkpoint written by `hg fit`")
+    parser.add_argument("--out", required=True, type=Path, help="folder for the pictures")
+    parser.add_argument("--config", action="append", default=[],
+                        help="config applied over the checkpoint's data settings (repeatable)")
+    parser.add_argument("--split", choices=("test", "val"), default="test")
+    parser.add_argument("--mode", choices=("arm", "ideal"),
+                        help="probing mode of the rollouts (default: the checkpoint's); frames always show the arm")
+    parser.add_argument("--mean-action", action="store_true", help="the mean-action policy instead of a sampled one")
+    parser.add_argument("--maps", action="store_true",
+                        help="also the probe heat maps and confusion matrices over the whole split")
+    parser.add_argument("--size", type=int, nargs=2, default=(640, 480), metavar=("W", "H"), help="frame size")
+    args = parser.parse_args(argv)
+    if not args.ckpt.is_file():
+        raise FileNotFoundError(f"--ckpt {args.ckpt}: file not found")
+
+    datamodule = load_datamodule(args.ckpt, args.config, args.mode)
+    model = HapticGlance.load_from_checkpoint(args.ckpt, map_location="cpu").eval()
+    if model.hparams.n_classes != datamodule.n_classes:
+        raise ValueError(f"{args.ckpt}: the model knows {model.hparams.n_classes} classes, the data "
+                         f"{datamodule.n_classes} ({', '.join(datamodule.class_names)}); check --config")
+    loader = datamodule.test_dataloader() if args.split == "test" else datamodule.val_dataloader()
+    model.sim = datamodule.make_simulator()
+    try:
+        parts = []
+        for batch in loader:  # whole batches, so each episode's rollout is the one the evaluation scored
+            parts.append(roll_out(model, batch, deterministic=args.mean_action))
+            found = one_per_class(Rollouts.concat(parts), datamodule.n_classes)
+            if not args.maps and len(found) == datamodule.n_classes:
+                break
+        rollouts = Rollouts.concat(parts)
+        picked = one_per_class(rollouts, datamodule.n_classes)
+        own = model.sim.arm is None
+        sim = arm_simulator(datamodule) if own else model.sim
+        try:
+            written = render_episodes(rollouts, picked, sim, datamodule.class_names, args.out, Camera(*args.size))
+        finally:
+            if own:
+                sim.close()
+    finally:
+        model.sim.close()
+    if args.maps:
+        written += write_test_maps(rollouts, datamodule.class_names, datamodule.scene, args.out)
+    names = datamodule.class_names
+    episodes = [{"index": i, "class": names[int(rollouts.labels[i])],
+                 "predictions": [names[int(p)] for p in rollouts.predictions[i]],
+                 "touches": int(rollouts.points[i, :, 3].sum())} for i in picked]
+    for episode in episodes:
+        print(f"{args.split} episode {episode['index']} ({episode['class']}): predictions after each probe "
+              f"{' '.join(episode['predictions'])}; {episode['touches']} touches")
+    print(f"{len(written)} files in {args.out} ({rollout_kind(args.mean_action)}, {datamodule.hparams.mode} mode)")
+    print(json.dumps({"out": str(args.out), "rollout": rollout_kind(args.mean_action), "mode": datamodule.hparams.mode,
+                      "split": args.split, "episodes": episodes, "files": [str(p) for p in written]}))
+    return written
+
+
+if __name__ == "__main__":
+    try:
+        main(sys.argv[1:])
+    except (ValueError, FileNotFoundError) as exc:  # one line naming the file or field, as `hg` does
+        print(f"render_episode: error: {exc}", file=sys.stderr)
+        sys.exit(2)

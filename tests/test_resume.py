@@ -1,0 +1,59 @@
+"""A fit killed mid-run resumes from last.ckpt at the right step and ends where an uninterrupted run ends."""
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+TINY = str(Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml")
+ARGS = ["--config", TINY, "--trainer.max_steps", "120", "--trainer.val_check_interval", "10", "--trainer.logger", "false"]
+ENV = {**os.environ, "WANDB_MODE": "disabled"}
+
+
+def fit(cwd, *extra, background=False):
+    command = [sys.executable, "-m", "hg.lightning.cli", "fit", *ARGS, "--trainer.default_root_dir", str(cwd), *extra]
+    if background:
+        return subprocess.Popen(command, cwd=cwd, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = subprocess.run(command, cwd=cwd, env=ENV, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+
+
+def last_checkpoint(folder):
+    found = list(Path(folder).rglob("last.ckpt"))
+    return found[0] if found else None
+
+
+def final_state(folder):
+    checkpoint = torch.load(last_checkpoint(folder), weights_only=False)
+    return checkpoint["global_step"], checkpoint["state_dict"]
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("uninterrupted")
+    fit(folder)
+    return final_state(folder)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
+def test_killed_fit_resumes_to_the_same_result(tmp_path, reference, sig):
+    proc = fit(tmp_path, background=True)
+    deadline = time.time() + 300
+    while time.time() < deadline:  # wait for a checkpoint past the first validation, then kill mid-run
+        ckpt = last_checkpoint(tmp_path)
+        if ckpt is not None and torch.load(ckpt, weights_only=False)["global_step"] >= 20:
+            break
+        time.sleep(0.05)
+    proc.send_signal(sig)
+    proc.wait(timeout=120)
+    killed_at = torch.load(last_checkpoint(tmp_path), weights_only=False)["global_step"]
+    assert 20 <= killed_at < 120, "the run must be killed mid-way"
+    fit(tmp_path, "--ckpt_path", str(last_checkpoint(tmp_path)))
+    step, state = final_state(tmp_path)
+    assert step == reference[0] == 120
+    for key, value in reference[1].items():
+        torch.testing.assert_close(state[key], value, msg=f"{key} differs after resume")
