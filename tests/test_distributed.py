@@ -26,7 +26,7 @@ def test_fit_under_ddp_with_two_cpu_processes(tmp_path):
         [sys.executable, "-m", "hg.lightning.cli", "fit", "--config", TINY, "--trainer.strategy", "ddp",
          "--trainer.devices", "2", "--trainer.accelerator", "cpu", "--trainer.logger", "false",
          "--trainer.default_root_dir", str(tmp_path)],
-        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     checkpoint = torch.load(next(tmp_path.rglob("last.ckpt")), weights_only=False)
     assert checkpoint["global_step"] == 4

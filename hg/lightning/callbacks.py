@@ -22,9 +22,11 @@ from pytorch_lightning.utilities import rank_zero_only  # noqa: E402
 def run_dir(trainer: pl.Trainer) -> Path:
     """The run's own folder: the wandb run's files folder (synced with the run), else the trainer's log dir."""
     logger = trainer.logger
-    if isinstance(logger, WandbLogger) and getattr(logger.experiment, "dir", None):
+    if isinstance(logger, WandbLogger) and isinstance(getattr(logger.experiment, "dir", None), str):
         return Path(logger.experiment.dir)
-    return Path(trainer.log_dir or trainer.default_root_dir)
+    if logger is not None and getattr(logger, "log_dir", None):  # not trainer.log_dir: it broadcasts across ranks
+        return Path(logger.log_dir)
+    return Path(trainer.default_root_dir)
 
 
 def write_atomic(path: Path, data: bytes | str) -> None:
