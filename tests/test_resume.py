@@ -10,14 +10,17 @@ import pytest
 import torch
 
 TINY = str(Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml")
-ARGS = ["--config", TINY, "--trainer.max_steps", "120", "--trainer.val_check_interval", "10", "--trainer.logger", "false"]
+STEPS = 400
+ARGS = ["--config", TINY, "--trainer.max_steps", str(STEPS), "--trainer.val_check_interval", "50",
+        "--last_checkpoint.every_n_train_steps", "20", "--trainer.logger", "false"]
 ENV = {**os.environ, "WANDB_MODE": "disabled"}
 
 
 def fit(cwd, *extra, background=False):
     command = [sys.executable, "-m", "hg.lightning.cli", "fit", *ARGS, "--trainer.default_root_dir", str(cwd), *extra]
     if background:
-        return subprocess.Popen(command, cwd=cwd, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        log = open(Path(cwd) / "fit.log", "w")  # not a pipe: an unread pipe fills up and blocks the run
+        return subprocess.Popen(command, cwd=cwd, env=ENV, stdout=log, stderr=subprocess.STDOUT)
     proc = subprocess.run(command, cwd=cwd, env=ENV, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
 
@@ -45,15 +48,15 @@ def test_killed_fit_resumes_to_the_same_result(tmp_path, reference, sig):
     deadline = time.time() + 300
     while time.time() < deadline:  # wait for a checkpoint past the first validation, then kill mid-run
         ckpt = last_checkpoint(tmp_path)
-        if ckpt is not None and torch.load(ckpt, weights_only=False)["global_step"] >= 20:
+        if ckpt is not None and torch.load(ckpt, weights_only=False)["global_step"] >= 40:
             break
         time.sleep(0.05)
     proc.send_signal(sig)
     proc.wait(timeout=120)
     killed_at = torch.load(last_checkpoint(tmp_path), weights_only=False)["global_step"]
-    assert 20 <= killed_at < 120, "the run must be killed mid-way"
+    assert 40 <= killed_at < STEPS, "the run must be killed mid-way"
     fit(tmp_path, "--ckpt_path", str(last_checkpoint(tmp_path)))
     step, state = final_state(tmp_path)
-    assert step == reference[0] == 120
+    assert step == reference[0] == STEPS
     for key, value in reference[1].items():
         torch.testing.assert_close(state[key], value, msg=f"{key} differs after resume")

@@ -27,9 +27,15 @@ TRAINER_DEFAULTS = {
 
 class HapticCLI(LightningCLI):
     def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
+        # best by val/acc; and, separately, the latest every N steps plus last.ckpt for resuming (Lightning only
+        # refreshes last.ckpt when its callback saved, which a best-only callback does not do every time)
         parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
-        parser.set_defaults({"checkpoint.monitor": "val/acc", "checkpoint.mode": "max", "checkpoint.save_last": True,
+        parser.set_defaults({"checkpoint.monitor": "val/acc", "checkpoint.mode": "max",
                              "checkpoint.filename": "best-step{step}", "checkpoint.auto_insert_metric_name": False})
+        parser.add_lightning_class_args(ModelCheckpoint, "last_checkpoint")
+        parser.set_defaults({"last_checkpoint.save_last": True, "last_checkpoint.every_n_train_steps": 100,
+                             "last_checkpoint.filename": "latest-step{step}",
+                             "last_checkpoint.auto_insert_metric_name": False})
         parser.add_lightning_class_args(PerProbeAccuracy, "per_probe_accuracy")
         parser.add_lightning_class_args(ProbeMaps, "probe_maps")  # heat maps and confusion matrices at test end
         parser.link_arguments("seed_everything", "data.seed")

@@ -228,8 +228,8 @@ class HapticGlance(pl.LightningModule):
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
         """Adam; beyond the paper, the location network may learn on a slower time scale than the classifier."""
-        location = set(self.location.parameters())
-        rest = [p for p in self.parameters() if p not in location]
+        location = list(self.location.parameters())  # a list, not a set: the order must survive a resume
+        rest = [p for p in self.parameters() if all(p is not q for q in location)]
         return torch.optim.Adam([{"params": rest},
-                                 {"params": list(location), "lr": self.hparams.lr * self.hparams.policy_lr_scale}],
+                                 {"params": location, "lr": self.hparams.lr * self.hparams.policy_lr_scale}],
                                 lr=self.hparams.lr)
