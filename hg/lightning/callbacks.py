@@ -3,8 +3,6 @@ from __future__ import annotations
 
 import csv
 import io
-import os
-import tempfile
 from pathlib import Path
 
 import matplotlib
@@ -18,6 +16,8 @@ from pytorch_lightning.cli import SaveConfigCallback  # noqa: E402
 from pytorch_lightning.loggers import WandbLogger  # noqa: E402
 from pytorch_lightning.utilities import rank_zero_only  # noqa: E402
 
+from hg.atomic import write_atomic  # noqa: E402
+
 
 def run_dir(trainer: pl.Trainer) -> Path:
     """The run's own folder: the wandb run's files folder (synced with the run), else the trainer's log dir."""
@@ -27,14 +27,6 @@ def run_dir(trainer: pl.Trainer) -> Path:
     if logger is not None and getattr(logger, "log_dir", None):  # not trainer.log_dir: it broadcasts across ranks
         return Path(logger.log_dir)
     return Path(trainer.default_root_dir)
-
-
-def write_atomic(path: Path, data: bytes | str) -> None:
-    """Write to a temporary file beside `path`, then rename: a kill never leaves a half-written file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile("wb", dir=path.parent, prefix=f".{path.name}.", delete=False) as tmp:
-        tmp.write(data.encode() if isinstance(data, str) else data)
-    os.replace(tmp.name, path)
 
 
 def per_probe_table(metrics: dict, stage: str, n_probes: int) -> dict[str, list[float]]:

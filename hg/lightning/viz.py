@@ -21,7 +21,8 @@ import torch  # noqa: E402
 from pytorch_lightning.loggers import WandbLogger  # noqa: E402
 from pytorch_lightning.utilities import rank_zero_only  # noqa: E402
 
-from hg.lightning.callbacks import accuracy_plot, run_dir, write_atomic  # noqa: E402
+from hg.atomic import write_atomic  # noqa: E402
+from hg.lightning.callbacks import accuracy_plot, run_dir  # noqa: E402
 from hg.sim import ProbeSimulator, Scene  # noqa: E402
 from hg.sim.render import (Camera, EpisodeTrace, caption, episode_figure, render_episode, save_frames,  # noqa: E402
                            save_gif)

@@ -7,9 +7,9 @@ URDF's hash) gives every probe a warm start, and one IK call per probe suffices.
 from __future__ import annotations
 
 import hashlib
+import io
 import math
 import os
-import tempfile
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pybullet
 
+from hg.atomic import write_atomic
 from hg.sim.client import ROBOT_GROUP, BulletClient
 from hg.sim.scene import Scene
 
@@ -205,10 +206,9 @@ class ProbeArm:
             with np.load(path) as data:
                 return data["q"], data["error"]
         q, error = self._build_reach_map(seed)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".npz", delete=False) as tmp:
-            np.savez(tmp, q=q, error=error)
-        os.replace(tmp.name, path)  # atomic: a killed build never leaves a half-written map
+        buffer = io.BytesIO()
+        np.savez(buffer, q=q, error=error)
+        write_atomic(path, buffer.getvalue())
         return q, error
 
     def pose_error(self, points: np.ndarray, dirs: np.ndarray, tips: np.ndarray, axes: np.ndarray) -> np.ndarray:
