@@ -86,7 +86,7 @@ def main(argv: list[str]) -> list[Path]:
                 break
         rollouts = Rollouts.concat(parts)
         picked = one_per_class(rollouts, datamodule.n_classes)
-        own = model.sim.arm is None
+        own = model.sim.arm is None or not model.sim.visuals  # frames need the arm and the looks
         sim = arm_simulator(datamodule) if own else model.sim
         try:
             written = render_episodes(rollouts, picked, sim, datamodule.class_names, args.out, Camera(*args.size))

@@ -40,7 +40,7 @@ def changed(a: np.ndarray, b: np.ndarray) -> float:
 
 @pytest.fixture(scope="module")
 def arm_sim():
-    with ProbeSimulator(batch_size=2, mode="arm") as sim:
+    with ProbeSimulator(batch_size=2, mode="arm", visuals=True) as sim:
         yield sim
 
 

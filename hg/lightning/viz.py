@@ -82,7 +82,7 @@ def one_per_class(rollouts: Rollouts, n_classes: int) -> list[int]:
 def arm_simulator(datamodule: pl.LightningDataModule) -> ProbeSimulator:
     """A one-slot arm-mode simulator of the datamodule's world: frames need the arm even for ideal-mode rollouts."""
     h = datamodule.hparams
-    return ProbeSimulator(datamodule.object_set, 1, datamodule.scene, "arm", h.robot, seed=h.seed)
+    return ProbeSimulator(datamodule.object_set, 1, datamodule.scene, "arm", h.robot, seed=h.seed, visuals=True)
 
 
 def _figure_png(fig: plt.Figure) -> bytes:

@@ -163,8 +163,9 @@ def render_episode(sim: ProbeSimulator, trace: EpisodeTrace, camera: Camera = Ca
 
     Resets the simulator to this one episode (slot 0); it needs the arm, so a simulator in arm mode.
     """
-    if sim.arm is None:
-        raise ValueError("render_episode: the simulator is in ideal mode; frames need the arm (mode='arm')")
+    if sim.arm is None or not sim.visuals:
+        raise ValueError("render_episode: frames need a simulator with the arm and the objects' looks "
+                         "(mode='arm', visuals=True)")
     requests, points = np.asarray(trace.requests, dtype=np.float64), np.asarray(trace.points, dtype=np.float64)
     if requests.ndim != 2 or requests.shape[1] != 4 or points.shape != requests.shape:
         raise ValueError(f"trace: requests {requests.shape} and points {points.shape} must both be (N, 4)")

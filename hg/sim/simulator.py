@@ -56,7 +56,7 @@ class ProbeSimulator:
 
     def __init__(self, objects: str | Path | ObjectSet = "hg4", batch_size: int = 64, scene: Scene = Scene(),
                  mode: str = "arm", robot: str | Path = DEFAULT_URDF, tool_link: str = TOOL_LINK,
-                 noise: SensorNoise = SensorNoise(), seed: int = 0) -> None:
+                 noise: SensorNoise = SensorNoise(), seed: int = 0, visuals: bool = False) -> None:
         if mode not in MODES:
             raise ValueError(f"mode={mode!r}: expected one of {MODES}")
         if batch_size < 1:
@@ -64,6 +64,7 @@ class ProbeSimulator:
         self.objects = objects if isinstance(objects, ObjectSet) else load_object_set(objects)
         check_below_ground(scene, self.objects)
         self.scene, self.mode, self.noise, self.batch_size = scene, mode, noise, batch_size
+        self.visuals = visuals  # object visual shapes, for pictures only: PyBullet never frees them
         self.rng = np.random.default_rng(seed)
         self.client = BulletClient()
         try:
@@ -96,7 +97,7 @@ class ProbeSimulator:
             shape = c.createCollisionShape(c.GEOM_MESH, vertices=vertices, indices=indices,
                                            flags=c.GEOM_FORCE_CONCAVE_TRIMESH)
             visual = c.createVisualShape(c.GEOM_MESH, vertices=vertices, indices=indices,
-                                         rgbaColor=[0.2, 0.45, 0.8, 1.0])
+                                         rgbaColor=[0.2, 0.45, 0.8, 1.0]) if self.visuals else -1
             for i in slots:
                 body = c.createMultiBody(0, shape, visual if i == 0 else -1, self._park(i))
                 c.setCollisionFilterGroupMask(body, -1, OBJECT_GROUP, OBJECT_GROUP)

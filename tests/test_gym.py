@@ -1,0 +1,79 @@
+"""The gymnasium environments over the real simulator."""
+import gymnasium
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+from hg.sim.gym_env import HapticGlanceEnv, HapticGlanceVectorEnv
+
+
+@pytest.fixture
+def env():
+    environment = HapticGlanceEnv(n_probes=4, mode="ideal")
+    yield environment
+    environment.close()
+
+
+def test_passes_the_gymnasium_checker(env):
+    check_env(env, skip_render_check=True)
+
+
+def test_episode_length_and_observations(env):
+    observation, info = env.reset(seed=3)
+    assert observation["count"] == 0 and not observation["points"].any()
+    for k in range(1, 5):
+        observation, reward, terminated, truncated, info = env.step(np.array([0.0, 0.0, 0.0, 1.0], np.float32))
+        assert observation["count"] == k and terminated == (k == 4) and not truncated
+        assert reward == float(info["touched"]) == observation["points"][k - 1, 3]
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(np.zeros(4, np.float32))
+
+
+def test_same_seed_same_episode(env):
+    runs = []
+    for _ in range(2):
+        _, info = env.reset(seed=11)
+        steps = [env.step(np.array([0.1 * k, 0.3, -0.2, 0.0], np.float32)) for k in range(4)]
+        runs.append((info["label"], np.stack([s[0]["points"] for s in steps])))
+    assert runs[0][0] == runs[1][0]
+    np.testing.assert_array_equal(runs[0][1], runs[1][1])
+
+
+def test_classifier_callback_reward():
+    def always_ball(requests, points):
+        assert requests.shape == points.shape and requests.shape[1] == 4
+        return 2  # hg4 class order: pipe, box, ball, tire
+    env = HapticGlanceEnv(n_probes=2, mode="ideal", classifier=always_ball)
+    rewards = []
+    for seed in range(12):
+        _, info = env.reset(seed=seed)
+        reward = env.step(np.zeros(4, np.float32))[1]
+        assert reward == float(info["label"] == 2)
+        rewards.append(reward)
+    env.close()
+    assert 0 < sum(rewards) < 12
+
+
+def test_arm_mode_episode():
+    env = gymnasium.make("HapticGlance-v0", n_probes=2)
+    env.reset(seed=0)
+    _, _, _, _, info = env.step(np.array([0.0, 0.5, 0.0, 0.0], np.float32))
+    assert info["pose_error"][0] < 0.005 and info["pose_error"][1] < 3.0
+    env.close()
+
+
+def test_vector_env_probes_all_with_one_step_and_autoresets():
+    envs = gymnasium.make_vec("HapticGlance-v0", num_envs=5, vectorization_mode="vector_entry_point", n_probes=3,
+                              mode="ideal")
+    assert isinstance(envs.unwrapped, HapticGlanceVectorEnv)
+    observations, info = envs.reset(seed=2)
+    assert observations["points"].shape == (5, 3, 4)
+    for k in range(3):
+        observations, rewards, terminated, truncated, info = envs.step(envs.action_space.sample())
+        assert rewards.shape == (5,) and (terminated == (k == 2)).all()
+        np.testing.assert_array_equal(rewards, info["touched"].astype(float))
+    poses = envs.unwrapped.episodes.sim.poses.copy()
+    observations, rewards, terminated, _, info = envs.step(envs.action_space.sample())  # the autoreset step
+    assert (observations["count"] == 0).all() and not rewards.any() and not terminated.any()
+    assert not np.array_equal(poses, envs.unwrapped.episodes.sim.poses)  # new episodes
+    envs.close()
