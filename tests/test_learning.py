@@ -155,3 +155,11 @@ def test_same_seed_same_training(tmp_path):
     assert len(states) == 2 and states[0].keys() == states[1].keys()
     for key in states[0]:
         torch.testing.assert_close(states[0][key], states[1][key])
+
+
+def test_log_gain_rewards_add_up_to_the_final_log_probability():
+    logits = torch.randn(6, 5, 4)
+    labels = torch.randint(4, (6,))
+    terms = hybrid_loss(logits, labels, None, None, gamma=1.0, beta=1.0, reward="log_gain")
+    final = logits[:, -1].log_softmax(-1).gather(-1, labels[:, None]).squeeze(-1)
+    torch.testing.assert_close(terms["reward"] * 5, (final + torch.log(torch.tensor(4.0))).mean())

@@ -28,8 +28,8 @@ def discounted_returns(rewards: Tensor, gamma: float) -> Tensor:
 
 
 def hybrid_loss(logits: Tensor, labels: Tensor, log_pi: Tensor | None, baseline: Tensor | None, gamma: float,
-                beta: float, normalize_advantage: bool = False, reward: Literal["correct", "probability", "log_gain"] = "correct",
-                touches: Tensor | None = None, touch_bonus: float = 0.0) -> dict[str, Tensor]:
+                beta: float, normalize_advantage: bool = False,
+                reward: Literal["correct", "log_gain"] = "correct") -> dict[str, Tensor]:
     """The hybrid update rule, eq. (6), as a loss to minimise; every term is returned for logging.
 
     logits (B, N, C): prediction after each probe; log_pi (B, N): log pi(a_k | s_k) of the detached requests;
@@ -41,12 +41,8 @@ def hybrid_loss(logits: Tensor, labels: Tensor, log_pi: Tensor | None, baseline:
     log_p = logits.detach().log_softmax(-1).gather(-1, labels[:, None, None].expand(-1, n_probes, 1)).squeeze(-1)
     if reward == "correct":
         rewards = correct  # r_k = 1 when the prediction after probe k is right (the paper)
-    elif reward == "probability":  # beyond the paper: a graded version of the same reward
-        rewards = log_p.exp()
     else:  # "log_gain", beyond the paper: what probe k added to log p(true class); sums to log p_N - log(1/C)
         rewards = torch.diff(log_p, dim=1, prepend=torch.full_like(log_p[:, :1], -math.log(logits.shape[-1])))
-    if touch_bonus:  # beyond the paper: a small reward for touching the object at all
-        rewards = rewards + touch_bonus * touches
     # sum_o y_o log pi_c(o), on the prediction after every probe
     cross_entropy = F.cross_entropy(logits.flatten(0, 1), labels.repeat_interleave(n_probes))
     terms = {"loss_ce": cross_entropy, "reward": rewards.mean(), "acc": correct[:, -1].mean()}
@@ -86,8 +82,8 @@ class HapticGlance(pl.LightningModule):
                  representation: int = 256, hidden: int = 256, std_floor: float = 0.05, std_max: float = 1.0,
                  gamma: float = 0.95, beta: float = 1.0, lr: float = 1e-3, point_scale: float = 2.0,
                  normalize_advantage: bool = False, policy_reads_detached: bool = False,
-                 reward: Literal["correct", "probability", "log_gain"] = "correct", policy_lr_scale: float = 1.0,
-                 touch_bonus: float = 0.0, prior: Literal["none", "line_scan"] = "none") -> None:
+                 reward: Literal["correct", "log_gain"] = "correct", policy_lr_scale: float = 1.0,
+                 prior: Literal["none", "line_scan"] = "none") -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -185,8 +181,7 @@ class HapticGlance(pl.LightningModule):
             log_pi = self.location.log_prob(states, rollout.actions, self.prior_offsets)
             baseline = self.baseline(states.detach())
         h = self.hparams
-        terms = hybrid_loss(logits, labels, log_pi, baseline, h.gamma, h.beta, h.normalize_advantage, h.reward,
-                            rollout.points[..., 3], h.touch_bonus)
+        terms = hybrid_loss(logits, labels, log_pi, baseline, h.gamma, h.beta, h.normalize_advantage, h.reward)
         if log_pi is not None:
             with torch.no_grad():  # too large a std is the usual cause of poor accuracy: watch it
                 sigma = self.location.distribution(states, rollout.actions, self.prior_offsets)[1].mean((0, 1))
