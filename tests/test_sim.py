@@ -10,7 +10,7 @@ from hg.sim import PoseRegions, ProbeSimulator, Scene, SensorNoise, sample_episo
 from hg.sim.client import BulletClient, OBJECT_GROUP
 from hg.sim.objects import hg4, load_folder
 from hg.sim.poses import quaternions, rotation_matrices
-from hg.sim.robot import achieved
+from hg.sim.robot import achieved, tool_orientations, z_axes
 
 DOWN = np.array([[0.0, 0.0, 0.0, 1.0]])  # py=0 -> y=0, no lean, steepest: straight down at (0, 0, 0)
 
@@ -54,6 +54,12 @@ def test_rays_never_report_arm_or_ground(arm_sim):
         assert result.points[0, 3] == 0.0
         start = result.entry[0]  # achieved tip is within tolerance of P
         assert np.linalg.norm(result.points[0, :3] - start) == pytest.approx(arm_sim.scene.probe_length, abs=0.006)
+
+
+def test_tool_orientation_points_the_tool_along_u():
+    directions = Scene().request_to_probe(np.random.default_rng(3).uniform(-1, 1, (500, 4)))[1]
+    np.testing.assert_allclose(z_axes(tool_orientations(directions)), directions, atol=1e-12)
+    np.testing.assert_allclose(tool_orientations(np.array([[0.0, 0.0, -1.0]])), [[1.0, 0.0, 0.0, 0.0]])
 
 
 def test_arm_reaches_random_requests(arm_sim):

@@ -40,17 +40,12 @@ def cache_dir() -> Path:
 def tool_orientations(directions: np.ndarray) -> np.ndarray:
     """Quaternions (x, y, z, w) turning the tool +z onto each direction u with one fixed roll convention.
 
-    Straight down is a half turn about x; a tilted u adds the smallest rotation from straight down to u.
+    Straight down is a half turn about x; a tilted u adds the smallest rotation from straight down to u,
+    normalise((0, 0, -1) x u, 1 - u_z). Their product, written out, is (1 - u_z, 0, u_x, -u_y) normalised.
     """
     u = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
-    axis = np.column_stack([u[:, 1], -u[:, 0], np.zeros(len(u))])  # (0, 0, -1) x u
-    sin_t = np.linalg.norm(axis, axis=1)
-    theta = np.arctan2(sin_t, -u[:, 2])
-    axis = np.where(sin_t[:, None] > 1e-12, axis / np.maximum(sin_t, 1e-12)[:, None], [1.0, 0.0, 0.0])
-    tilt = np.column_stack([axis * np.sin(theta / 2)[:, None], np.cos(theta / 2)])
-    # tilt (x) down, with down = (1, 0, 0, 0): Hamilton product written out for that constant
-    x, y, z, w = tilt.T
-    return np.column_stack([w, z, -y, -x])
+    q = np.column_stack([1.0 - u[:, 2], np.zeros(len(u)), u[:, 0], -u[:, 1]])
+    return q / np.sqrt((q * q).sum(axis=1))[:, None]
 
 
 def z_axes(quaternions: np.ndarray) -> np.ndarray:
