@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
+from hg.sim import ProbeSimulator
 from hg.sim.gym_env import HapticGlanceEnv, HapticGlanceVectorEnv
 
 
@@ -76,4 +77,36 @@ def test_vector_env_probes_all_with_one_step_and_autoresets():
     observations, rewards, terminated, _, info = envs.step(envs.action_space.sample())  # the autoreset step
     assert (observations["count"] == 0).all() and not rewards.any() and not terminated.any()
     assert not np.array_equal(poses, envs.unwrapped.episodes.sim.poses)  # new episodes
+    envs.close()
+
+
+def test_random_policy_rollout_via_make():
+    env = gymnasium.make("HapticGlance-v0", n_probes=5, mode="ideal")
+    env.action_space.seed(0)
+    observation, info = env.reset(seed=0)
+    steps, terminated, truncated = 0, False, False
+    while not (terminated or truncated):
+        observation, reward, terminated, truncated, info = env.step(env.action_space.sample())
+        steps += 1
+        assert observation in env.observation_space and reward in (0.0, 1.0)
+    assert steps == 5 and observation["count"] == 5 and info["class_name"] in env.unwrapped.episodes.sim.classes
+    env.close()
+
+
+def test_vector_env_matches_probing_each_episode_alone():
+    """One ray batch over all sub-environments gives what a one-episode simulator gives for each of them."""
+    envs = HapticGlanceVectorEnv(num_envs=4, n_probes=3, mode="ideal")
+    envs.reset(seed=7)
+    envs.action_space.seed(7)
+    steps = [envs.step(envs.action_space.sample()) for _ in range(3)]
+    assert any(step[4]["touched"].any() for step in steps)  # contacts as well as misses are compared
+    sim = envs.episodes.sim
+    observations = steps[-1][0]
+    with ProbeSimulator(batch_size=1, mode="ideal") as alone:
+        for i in range(4):
+            alone.reset(sim.labels[i:i + 1], sim.poses[i:i + 1])
+            for k in range(3):
+                point = alone.probe(observations["requests"][i, k][None].astype(np.float64)).points[0]
+                np.testing.assert_allclose(observations["points"][i, k], point, atol=1e-5)
+                assert steps[k][1][i] == point[3] == float(steps[k][4]["touched"][i])
     envs.close()

@@ -163,3 +163,12 @@ def test_log_gain_rewards_add_up_to_the_final_log_probability():
     terms = hybrid_loss(logits, labels, None, None, gamma=1.0, beta=1.0, reward="log_gain")
     final = logits[:, -1].log_softmax(-1).gather(-1, labels[:, None]).squeeze(-1)
     torch.testing.assert_close(terms["reward"] * 5, (final + torch.log(torch.tensor(4.0))).mean())
+
+
+def test_non_finite_policy_output_is_reported_with_its_step(data):
+    model = make_model(data)
+    with torch.no_grad():
+        model.location.start.fill_(float("nan"))
+    batch = first_batch(data)
+    with pytest.raises(FloatingPointError, match=r"probe 1, global step 0"):
+        model.rollout(batch["labels"], batch["poses"], 0)

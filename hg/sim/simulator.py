@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pybullet
+import trimesh
 
 from hg.sim.client import GROUND_GROUP, OBJECT_GROUP, BulletClient
 from hg.sim.objects import ObjectSet, load_object_set
@@ -23,6 +24,18 @@ MODES = ("arm", "ideal")
 SLOT_SPACING = 4.0  # m; a probe reaches at most U_len + the arm's tip error from its entry point
 SLOTS_PER_ROW = 32
 PARK_DEPTH = -100.0  # objects not in use wait here, far below any ray
+
+
+_MESH_LISTS: dict[bytes, tuple[list, list]] = {}
+
+
+def mesh_lists(mesh: trimesh.Trimesh) -> tuple[list, list]:
+    """Vertices and flat indices as PyBullet takes them, the same list objects for the same mesh every time:
+    pybullet 3.2.7's createCollisionShape/createVisualShape keep references to the lists they get, never freed."""
+    key = mesh.vertices.tobytes() + b"|" + mesh.faces.tobytes()
+    if key not in _MESH_LISTS:
+        _MESH_LISTS[key] = (mesh.vertices.tolist(), mesh.faces.ravel().tolist())
+    return _MESH_LISTS[key]
 
 
 @dataclass(frozen=True)
@@ -93,7 +106,7 @@ class ProbeSimulator:
         self.ground = ground
         self.bodies = np.zeros((len(self.objects), self.batch_size), dtype=np.int64)
         for k, mesh in enumerate(self.objects.meshes):
-            vertices, indices = mesh.vertices.tolist(), mesh.faces.ravel().tolist()
+            vertices, indices = mesh_lists(mesh)
             shape = c.createCollisionShape(c.GEOM_MESH, vertices=vertices, indices=indices,
                                            flags=c.GEOM_FORCE_CONCAVE_TRIMESH)
             visual = c.createVisualShape(c.GEOM_MESH, vertices=vertices, indices=indices,
