@@ -177,7 +177,7 @@ def render_episode(sim: ProbeSimulator, trace: EpisodeTrace, camera: Camera = Ca
     try:
         markers.probe_line(sim.scene)
         for k in range(len(requests)):
-            tip, axis = sim.arm.reach(entry[k:k + 1], direction[k:k + 1])
+            tip, axis, _ = sim.arm.reach(entry[k:k + 1], direction[k:k + 1])
             touched = points[k, 3] > 0.5
             end = points[k, :3] if touched else tip[0] + sim.scene.probe_length * axis[0]
             markers.ray(tip[0], end, colours[k])

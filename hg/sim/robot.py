@@ -163,15 +163,18 @@ class ProbeArm:
             tips[i], quats[i] = state[4], state[5]
         return qs, tips, quats
 
-    def reach(self, points: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Move the tool to each (P, u) in turn; return achieved tip positions and +z axes (n, 3) each."""
+    def reach(self, points: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Move the tool to each (P, u) in turn; return achieved tip positions and +z axes (n, 3) each, and
+        their pose errors (n, 2) as `pose_error` gives them."""
         orients = tool_orientations(dirs)
         starts = self.map_q[self.grid.nearest(self.scene, points, dirs)]
         _, tips, quats = self.place(points, orients, starts, self.ik_iterations)
         axes = z_axes(quats)
-        for i in np.flatnonzero(~achieved(self.pose_error(points, dirs, tips, axes))):
+        errors = self.pose_error(points, dirs, tips, axes)
+        for i in np.flatnonzero(~achieved(errors)):
             tips[i], axes[i] = self._retry(points[i], dirs[i], orients[i])
-        return tips, axes
+            errors[i] = self.pose_error(points[i:i + 1], dirs[i:i + 1], tips[i:i + 1], axes[i:i + 1])[0]
+        return tips, axes, errors
 
     def _retry(self, point: np.ndarray, direction: np.ndarray, orientation: np.ndarray,
                tries: int = 6) -> tuple[np.ndarray, np.ndarray]:

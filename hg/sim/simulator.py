@@ -158,8 +158,7 @@ class ProbeSimulator:
         if self.arm is None:
             start, axis, error = entry, direction, np.zeros((n, 2))
         else:
-            start, axis = self.arm.reach(entry, direction)
-            error = self.arm.pose_error(entry, direction, start, axis)
+            start, axis, error = self.arm.reach(entry, direction)
         offset = self.offsets[:n]
         end = start + self.scene.probe_length * axis
         hit, position = self.client.cast_rays(start + offset, end + offset)

@@ -454,8 +454,8 @@ def measure_reach(urdf: str | Path, scene: Scene, n: int, seed: int = 0, diagnos
     points, dirs = scene.request_to_probe(requests)
     with BulletClient() as client:
         arm = ProbeArm(client, urdf, scene, TOOL_LINK, seed=seed)
-        tips, axes = arm.reach(points, dirs)
-        result = ReachResult(points, dirs, arm.pose_error(points, dirs, tips, axes), arm.map_error)
+        _, _, errors = arm.reach(points, dirs)
+        result = ReachResult(points, dirs, errors, arm.map_error)
         if diagnose and not result.ok.all():
             robot = load_urdf(urdf).robot
             name, bound = reach_bound(robot)
