@@ -38,10 +38,10 @@ def hybrid_loss(logits: Tensor, labels: Tensor, log_pi: Tensor | None, baseline:
     """
     n_probes = logits.shape[1]
     correct = (logits.argmax(-1) == labels[:, None]).float()
-    log_p = logits.detach().log_softmax(-1).gather(-1, labels[:, None, None].expand(-1, n_probes, 1)).squeeze(-1)
     if reward == "correct":
         rewards = correct  # r_k = 1 when the prediction after probe k is right (the paper)
     else:  # "log_gain", beyond the paper: what probe k added to log p(true class); sums to log p_N - log(1/C)
+        log_p = logits.detach().log_softmax(-1).gather(-1, labels[:, None, None].expand(-1, n_probes, 1)).squeeze(-1)
         rewards = torch.diff(log_p, dim=1, prepend=torch.full_like(log_p[:, :1], -math.log(logits.shape[-1])))
     # sum_o y_o log pi_c(o), on the prediction after every probe
     cross_entropy = F.cross_entropy(logits.flatten(0, 1), labels.repeat_interleave(n_probes))
