@@ -1,8 +1,10 @@
 """Probes per second of the simulator (B episodes x N probes) against the bare PyBullet calls for the same work.
 
 Bare arm cost per probe: one calculateInverseKinematics, the joint resets (one resetJointStatesMultiDof, as the
-simulator does), getLinkState for the achieved
-tool pose, and the probe's share of one rayTestBatch per step. Bare ideal cost: the rayTestBatch alone.
+simulator does), getLinkState for the achieved tool pose, and the probe's share of one rayTestBatch per step.
+Bare ideal cost: the rayTestBatch alone. Both also place each batch's objects with the same
+resetBasePositionAndOrientation calls as `ProbeSimulator.reset` (so that the first ray batch after a reset pays
+for the moved objects in both timings).
 Last line: JSON with arm_probes_per_s, ideal_probes_per_s, bare_arm_probes_per_s, bare_ideal_probes_per_s.
 """
 from __future__ import annotations
@@ -38,21 +40,24 @@ def time_simulator(sim: ProbeSimulator, work: list[tuple]) -> float:
 
 def time_bare(sim: ProbeSimulator, work: list[tuple], arm: bool) -> float:
     """The same PyBullet calls issued directly, with request mapping and warm starts prepared outside the clock."""
-    c, cid = sim.client, sim.client.id
+    cid = sim.client.id
     prepared = []
     for labels, poses, requests in work:
-        sim.reset(labels, poses)  # same object placement; not timed below
-        for step in requests:
+        moves = sim.placement(labels, poses)[1]  # the object moves of this episode batch, issued in the clock
+        sim.reset(labels, poses)
+        for k, step in enumerate(requests):
             entry, direction = sim.scene.request_to_probe(step)
             rows = [(p.tolist(), o.tolist(), q.tolist()) for p, o, q in zip(
                 entry, tool_orientations(direction), sim.arm.map_q[sim.arm.grid.nearest(sim.scene, entry, direction)])] \
                 if arm else None
             starts = entry + sim.offsets
             ends = starts + sim.scene.probe_length * direction
-            prepared.append((rows, starts, ends))
+            prepared.append((moves if k == 0 else [], rows, starts, ends))
     elapsed = 0.0
-    for rows, starts, ends in prepared:
+    for moves, rows, starts, ends in prepared:
         t0 = time.perf_counter()
+        for body, position, orientation in moves:
+            pybullet.resetBasePositionAndOrientation(body, position, orientation, physicsClientId=cid)
         if arm:
             body, tool, joints, damping = sim.arm.body, sim.arm.tool, sim.arm.joints, sim.arm.damping
             for point, orient, warm in rows:

@@ -6,6 +6,7 @@ URDF's hash) gives every probe a warm start, and one IK call per probe suffices.
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import io
 import math
@@ -100,13 +101,18 @@ class ReachGrid:
 
     def nearest(self, scene: Scene, points: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         """Flat index of the grid entry nearest to each request (entry y, u_x, u_y)."""
+        origin, step, top, strides = self._frame(scene)
+        coords = np.column_stack([points[:, 1], dirs[:, :2]])
+        return np.clip(np.rint((coords - origin) / step), 0, top).astype(np.int64) @ strides
+
+    @functools.lru_cache(maxsize=8)
+    def _frame(self, scene: Scene) -> tuple[np.ndarray, ...]:
+        """Origin, spacing, last index and flat strides of the grid: computed once, `nearest` runs every probe."""
         ys, hs = self.axes(scene)
         origin = np.array([ys[0], hs[0], hs[0]])
-        step = np.maximum((np.array([ys[-1], hs[-1], hs[-1]]) - origin) / np.maximum(
-            np.array([self.n_y, self.n_dir, self.n_dir]) - 1, 1), 1e-12)
-        coords = np.column_stack([points[:, 1], dirs[:, :2]])
-        cell = np.clip(np.rint((coords - origin) / step), 0, [self.n_y - 1, self.n_dir - 1, self.n_dir - 1])
-        return cell.astype(np.int64) @ np.array([self.n_dir * self.n_dir, self.n_dir, 1])
+        counts = np.array([self.n_y, self.n_dir, self.n_dir])
+        step = np.maximum((np.array([ys[-1], hs[-1], hs[-1]]) - origin) / np.maximum(counts - 1, 1), 1e-12)
+        return origin, step, counts - 1, np.array([self.n_dir * self.n_dir, self.n_dir, 1])
 
 
 class ProbeArm:
@@ -128,6 +134,7 @@ class ProbeArm:
         self.ik_iterations = ik_iterations
         self.damping = [ik_damping] * len(self.joints)  # PyBullet's default damping converges slowly
         self.grid_targets = grid.targets(scene)
+        self._neighbour_cache: dict[tuple[int, int], np.ndarray] = {}
         self.key = self._cache_key(tool_link)
         self.map_q, self.map_error = self._reach_map(seed)
 
@@ -146,16 +153,16 @@ class ProbeArm:
         cid, body, tool, joints, damping = self.client.id, self.body, self.tool, self.joints, self.damping
         ik, reset, link_state = (pybullet.calculateInverseKinematics, pybullet.resetJointStatesMultiDof,
                                  pybullet.getLinkState)
-        qs, frames = [], []
+        rows = []  # joint positions, then the tool's position and quaternion: one array built at the end
         for point, orientation, start in zip(points.tolist(), orientations.tolist(), starts.tolist()):
             q = ik(body, tool, point, orientation, currentPositions=start, jointDamping=damping,
                    maxNumIterations=iterations, residualThreshold=1e-6, physicsClientId=cid)
             reset(body, joints, [[v] for v in q], physicsClientId=cid)
             state = link_state(body, tool, computeForwardKinematics=True, physicsClientId=cid)
-            qs.append(q)
-            frames.append(state[4] + state[5])
-        qs, frames = np.array(qs), np.array(frames)
-        tips, quats = frames[:, :3], frames[:, 3:]
+            rows.append(q + state[4] + state[5])
+        rows = np.array(rows)
+        n_joints = len(joints)
+        qs, tips, quats = rows[:, :n_joints], rows[:, n_joints:n_joints + 3], rows[:, n_joints + 3:]
         for i in np.flatnonzero(((qs < self.lower) | (qs > self.upper)).any(axis=1)):
             qs[i] = np.clip(qs[i], self.lower, self.upper)
             self.set_joints(qs[i])
@@ -178,11 +185,9 @@ class ProbeArm:
 
     def _retry(self, point: np.ndarray, direction: np.ndarray, orientation: np.ndarray,
                tries: int = 6) -> tuple[np.ndarray, np.ndarray]:
-        """Rare slow path: warm starts from the next-nearest reach-map entries, keeping the best pose."""
-        grid_points, grid_dirs = self.grid_targets
-        distance = np.abs(grid_points[:, 1] - point[1]) + np.abs(grid_dirs - direction).sum(1)
+        """Rare slow path: warm starts from the reach-map entries next to the nearest one, keeping the best pose."""
         best = None
-        for entry in np.argsort(distance)[1:tries + 1]:
+        for entry in self._neighbours(int(self.grid.nearest(self.scene, point[None], direction[None])[0]), tries):
             _, tip, quat = self.place(point[None], orientation[None], self.map_q[entry][None], self.ik_iterations)
             tip, axis = tip[0], z_axes(quat)[0]
             err = self.pose_error(point[None], direction[None], tip[None], axis[None])[0]
@@ -191,6 +196,16 @@ class ProbeArm:
             if achieved(err):
                 break
         return best[1], best[2]
+
+    def _neighbours(self, entry: int, count: int) -> np.ndarray:
+        """The `count` grid entries closest to `entry` (itself excluded), in request space: cached per arm, as
+        the same hard corners of the request space come back."""
+        if (entry, count) not in self._neighbour_cache:
+            grid_points, grid_dirs = self.grid_targets
+            distance = np.abs(grid_points[:, 1] - grid_points[entry, 1]) + np.abs(grid_dirs - grid_dirs[entry]).sum(1)
+            distance[entry] = np.inf
+            self._neighbour_cache[entry, count] = np.argsort(distance, kind="stable")[:count]
+        return self._neighbour_cache[entry, count]
 
     # -- reach map ----------------------------------------------------------------------------------
     def _cache_key(self, tool_link: str) -> str:
@@ -211,8 +226,10 @@ class ProbeArm:
 
     def pose_error(self, points: np.ndarray, dirs: np.ndarray, tips: np.ndarray, axes: np.ndarray) -> np.ndarray:
         """(n, 2): position error in metres and angle error in degrees of achieved vs requested poses."""
-        cos = np.clip((axes * dirs).sum(-1), -1.0, 1.0)
-        return np.column_stack([np.linalg.norm(tips - points, axis=-1), np.degrees(np.arccos(cos))])
+        error = np.empty((len(points), 2))
+        error[:, 0] = np.sqrt(((tips - points) ** 2).sum(-1))
+        error[:, 1] = np.degrees(np.arccos(np.clip((axes * dirs).sum(-1), -1.0, 1.0)))
+        return error
 
     def _build_reach_map(self, seed: int, restarts: int = 12) -> tuple[np.ndarray, np.ndarray]:
         """Best IK solution per grid entry: warm starts from the neighbour, the middle pose, random poses."""

@@ -135,16 +135,25 @@ class ProbeSimulator:
         if labels.min() < 0 or labels.max() >= len(self.objects):
             raise ValueError(f"labels: class indices must be in [0, {len(self.objects)}), got {labels.min()}..{labels.max()}")
         cid, move = self.client.id, pybullet.resetBasePositionAndOrientation
-        bodies = np.full(self.batch_size, -1, dtype=np.int64)
-        bodies[:n] = self.bodies[labels, np.arange(n)]
-        for i in np.flatnonzero((self.active >= 0) & (self.active != bodies)):
-            move(int(self.active[i]), self._park(i), (0, 0, 0, 1), physicsClientId=cid)
-        for body, position, orientation in zip(bodies[:n].tolist(), (self.offsets[:n] + poses[:, :3]).tolist(),
-                                               quaternions(poses[:, 3:]).tolist()):
+        bodies, moves = self.placement(labels, poses)
+        for body, position, orientation in moves:
             move(body, position, orientation, physicsClientId=cid)
         self.active, self.labels, self.poses = bodies, labels, poses
         if seed is not None:
             self.rng = np.random.default_rng(seed)
+
+    def placement(self, labels: np.ndarray, poses: np.ndarray) -> tuple[np.ndarray, list[tuple]]:
+        """The body of each slot after a reset to (labels, poses), and the base moves that get there: objects
+        leaving a slot go back to their parking place. Separate from `reset` so the benchmark can issue the
+        very same PyBullet calls."""
+        n = len(labels)
+        bodies = np.full(self.batch_size, -1, dtype=np.int64)
+        bodies[:n] = self.bodies[labels, np.arange(n)]
+        moves = [(int(self.active[i]), self._park(i), (0, 0, 0, 1))
+                 for i in np.flatnonzero((self.active >= 0) & (self.active != bodies))]
+        moves += zip(bodies[:n].tolist(), (self.offsets[:n] + poses[:, :3]).tolist(),
+                     quaternions(poses[:, 3:]).tolist())
+        return bodies, moves
 
     def probe(self, requests: np.ndarray) -> ProbeResult:
         """Probe every episode once; requests (n, 4) in [-1, 1], one row per episode of the last reset."""
