@@ -17,7 +17,6 @@ import argparse
 import hashlib
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -31,6 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from hg.atomic import write_atomic  # noqa: E402
+from hg.provenance import commit, hardware  # noqa: E402
 
 TEST_EPISODES = 2048  # the fixed held-out test set every row is scored on (data.eval_seed 0)
 EVAL_SEED = 0
@@ -61,23 +61,6 @@ PAPER = {
 }
 
 
-# -- provenance --------------------------------------------------------------------------------------------
-def commit() -> str:
-    """HEAD's short hash, with '+dirty' when tracked files differ from it: a figure names the code it came from."""
-    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
-                           text=True).stdout.strip()
-    return (head or "unknown") + ("+dirty" if dirty else "")
-
-
-def hardware() -> str:
-    import torch
-
-    cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                if line.startswith("model name")), platform.processor()) if Path("/proc/cpuinfo").exists() else platform.processor()
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, torch {torch.__version__}"
-
-
 def run_name(row: str, seed: int) -> str:
     return f"{row}-seed{seed}"
 
@@ -88,6 +71,7 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out_dir: Path, steps: in
     that was best on val on the test set; write the run JSON atomically (its presence marks the run done)."""
     from hg.lightning.cli import cli
 
+    code_commit = commit()  # the code this run trains with, read before it starts
     name = run_name(row, seed)
     folder = runs_dir / name
     checkpoints = folder / "checkpoints"
@@ -121,7 +105,7 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out_dir: Path, steps: in
         else best.best_model_path,
         "train_wall_s": round(train_s, 1), "test_wall_s": round(test_s, 1), "parallel_jobs": jobs,
         "test_episodes": TEST_EPISODES, "test_fingerprint": test_fingerprint(run.datamodule),
-        "commit": commit(), "hardware": hardware(), "torch_threads": __import__("torch").get_num_threads(),
+        "commit": code_commit, "hardware": hardware(), "torch_threads": __import__("torch").get_num_threads(),
     }
     write_atomic(out_dir / "runs" / f"{name}.json", json.dumps(result, indent=1) + "\n")
 
@@ -251,7 +235,7 @@ def merge(out_dir: Path) -> dict:
     if not runs:
         raise SystemExit(f"{out_dir / 'runs'}: no finished runs to merge")
     table = summarise(runs)
-    merged_at = commit()
+    merged_at = commit(paths=())
     write_atomic(out_dir / "table1.json", json.dumps({"commit": merged_at, "test_episodes": TEST_EPISODES,
                                                       "test_fingerprint": next(iter(runs.values()))[0]["test_fingerprint"],
                                                       "rows": table, "paper": PAPER}, indent=1) + "\n")
