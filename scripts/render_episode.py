@@ -12,45 +12,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
-import warnings
-from dataclasses import asdict
 from pathlib import Path
 
-import torch
-import yaml
-
-from hg.lightning.cli import cli
-from hg.lightning.data import ProbeDataModule
+from hg.lightning.cli import datamodule_from_checkpoint
 from hg.lightning.module import HapticGlance
 from hg.lightning.viz import (Rollouts, arm_simulator, one_per_class, render_episodes, roll_out, rollout_kind,
                               write_test_maps)
 from hg.sim.render import Camera
-
-LINK_TARGETS = ("seed", "_instantiator")  # data.seed comes from seed_everything in the CLI
-
-
-def load_datamodule(ckpt: Path, configs: list[str], mode: str | None) -> ProbeDataModule:
-    """The checkpoint's ProbeDataModule, rebuilt by the CLI from its saved hyperparameters plus `configs`."""
-    saved = torch.load(ckpt, map_location="cpu", weights_only=False)
-    data = saved.get("datamodule_hyper_parameters")
-    if data is None:
-        raise ValueError(f"{ckpt}: no datamodule hyperparameters saved; was it written by `hg fit`?")
-    config = {"seed_everything": int(data.get("seed", 0)),
-              "data": {k: v for k, v in dict(data).items() if k not in LINK_TARGETS}}
-    with tempfile.NamedTemporaryFile("w", suffix=".yaml", delete=False) as tmp:  # JSON first: Scene, tuples -> YAML
-        yaml.safe_dump(json.loads(json.dumps(config, default=asdict)), tmp)
-    args = ["--config", tmp.name]
-    for path in configs:
-        args += ["--config", path]
-    if mode:
-        args += ["--data.mode", mode]
-    try:
-        with warnings.catch_warnings():  # our own argv is not the CLI's: its warning about both is beside the point
-            warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
-            return cli(args + ["--trainer.logger", "false"], run=False).datamodule
-    finally:
-        Path(tmp.name).unlink()
 
 
 def main(argv: list[str]) -> list[Path]:
@@ -70,7 +38,7 @@ def main(argv: list[str]) -> list[Path]:
     if not args.ckpt.is_file():
         raise FileNotFoundError(f"--ckpt {args.ckpt}: file not found")
 
-    datamodule = load_datamodule(args.ckpt, args.config, args.mode)
+    datamodule = datamodule_from_checkpoint(args.ckpt, args.config, ["--data.mode", args.mode] if args.mode else [])
     model = HapticGlance.load_from_checkpoint(args.ckpt, map_location="cpu").eval()
     if model.hparams.n_classes != datamodule.n_classes:
         raise ValueError(f"{args.ckpt}: the model knows {model.hparams.n_classes} classes, the data "

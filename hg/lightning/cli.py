@@ -1,8 +1,16 @@
 """`hg`: Lightning's own CLI (fit, validate, test, predict) over HapticGlance and ProbeDataModule."""
 from __future__ import annotations
 
+import json
 import os
 import sys
+import tempfile
+import warnings
+from dataclasses import asdict
+from pathlib import Path
+
+import torch
+import yaml
 
 from pytorch_lightning.callbacks import ModelCheckpoint
 from pytorch_lightning.cli import LightningArgumentParser, LightningCLI
@@ -50,6 +58,31 @@ def cli(args: list[str] | None = None, run: bool = True) -> HapticCLI:
                      save_config_callback=RunDirSaveConfig, save_config_kwargs={"save_to_log_dir": False,
                                                                                  "overwrite": True},
                      args=args, run=run)
+
+
+LINK_TARGETS = ("seed", "_instantiator")  # data.seed comes from seed_everything in the CLI
+
+
+def datamodule_from_checkpoint(ckpt: str | Path, configs: list[str] = (), args: list[str] = ()) -> ProbeDataModule:
+    """The checkpoint's ProbeDataModule, rebuilt by the CLI from its saved hyperparameters, then `configs` and
+    CLI `args` (e.g. `["--data.noise.miss_prob", "0.1"]`) applied on top: the world a model was trained in."""
+    saved = torch.load(ckpt, map_location="cpu", weights_only=False)
+    data = saved.get("datamodule_hyper_parameters")
+    if data is None:
+        raise ValueError(f"{ckpt}: no datamodule hyperparameters saved; was it written by `hg fit`?")
+    config = {"seed_everything": int(data.get("seed", 0)),
+              "data": {k: v for k, v in dict(data).items() if k not in LINK_TARGETS}}
+    with tempfile.NamedTemporaryFile("w", suffix=".yaml", delete=False) as tmp:  # JSON first: Scene, tuples -> YAML
+        yaml.safe_dump(json.loads(json.dumps(config, default=asdict)), tmp)
+    argv = ["--config", tmp.name]
+    for path in configs:
+        argv += ["--config", str(path)]
+    try:
+        with warnings.catch_warnings():  # our own argv is not the CLI's: its warning about both is beside the point
+            warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
+            return cli([*argv, *args, "--trainer.logger", "false"], run=False).datamodule
+    finally:
+        Path(tmp.name).unlink()
 
 
 def main() -> None:
