@@ -1,0 +1,244 @@
+"""The paper's noise comparison: PointNet and DGCNN on 10 sparse, noisy surface points against our best model
+after 10 probes under the simulator's missed / false-contact noise, at noise rates 0 to 50 %.
+
+- PointNet and DGCNN (k = 9) are trained supervised at each rate on clouds of 10 points sampled from the whole
+  object surface at fresh poses of the train region, a `rate` share of them replaced by points of the pose
+  volume (hg.sim.pointclouds); the checkpoint best on val clouds is scored on the test clouds at the same rate.
+  Their test clouds use the same test episodes (labels and poses) as docs/results/table1.md.
+- Our model: the checkpoints of the best learned row of docs/results/table1.json (trained without noise),
+  tested on those episodes with SensorNoise(miss_prob = rate, false_contact_prob = rate): each probe's reading
+  is corrupted with probability `rate`.
+
+Each (model, rate, seed) leaves a JSON in <out>/noise_runs/ and is not recomputed; the merge writes
+noise.{md,json,png}. Last line printed: JSON of the mean accuracies per model and rate, and the commit.
+
+    .venv/bin/python scripts/reproduce_noise.py                 # needs the table1 runs' checkpoints for 'ours'
+    .venv/bin/python scripts/reproduce_noise.py --models pointnet dgcnn --seeds 0
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import io
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import matplotlib  # noqa: E402
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import torch  # noqa: E402
+import torch.nn.functional as F  # noqa: E402
+
+from hg.atomic import write_atomic  # noqa: E402
+from hg.lightning.data import EvalEpisodes  # noqa: E402
+from hg.nets import DGCNN, PointNet  # noqa: E402
+from hg.provenance import commit, hardware  # noqa: E402
+from hg.sim import PoseRegions, Scene, load_object_set, sample_episodes  # noqa: E402
+from hg.sim.pointclouds import noisy_point_clouds  # noqa: E402
+
+RATES = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5)
+N_POINTS = 10
+EVAL_SEED, VAL_EPISODES, TEST_EPISODES = 0, 1024, 2048  # as in reproduce_table1.py: the same test episodes
+POINT_SCALE = 2.0  # as HapticGlance.point_scale: coordinates of order 1
+NETS = {"pointnet": ("PointNet", lambda n_classes: PointNet(n_classes)),
+        "dgcnn": ("DGCNN (k=9)", lambda n_classes: DGCNN(n_classes, k=9))}
+
+
+# -- point-cloud baselines ---------------------------------------------------------------------------------
+def cloud_tensor(clouds: np.ndarray) -> torch.Tensor:
+    """Centred on the cloud's mean (the usual PointNet normalisation; the pose's position is not a class cue)."""
+    return torch.from_numpy((clouds - clouds.mean(1, keepdims=True)) * POINT_SCALE).float()
+
+
+def fixed_clouds(regions: PoseRegions, objects, split: str, n_episodes: int, rate: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The split's fixed episodes (the ones the probing models meet) as clouds, seeded by split and rate only."""
+    batches = EvalEpisodes(regions, split, n_episodes, 256, len(objects), EVAL_SEED).batches
+    labels = np.concatenate([b["labels"].numpy() for b in batches])
+    poses = np.concatenate([b["poses"].numpy() for b in batches])
+    rng = np.random.default_rng([EVAL_SEED, split == "test", int(round(rate * 100))])
+    clouds, _ = noisy_point_clouds(regions.scene, objects, labels, poses, N_POINTS, rate, rng)
+    return cloud_tensor(clouds), torch.from_numpy(labels)
+
+
+@torch.no_grad()
+def accuracy(net: torch.nn.Module, clouds: torch.Tensor, labels: torch.Tensor) -> float:
+    net.eval()
+    return float((net(clouds).argmax(-1) == labels).float().mean())
+
+
+def train_point_cloud_net(name: str, rate: float, seed: int, steps: int, batch_size: int) -> dict:
+    """Supervised training on fresh train-region clouds; the state best on val is scored on test."""
+    torch.manual_seed(seed)
+    scene, objects = Scene(), load_object_set("hg4")
+    regions = PoseRegions(scene, seed=EVAL_SEED)
+    val, test = fixed_clouds(regions, objects, "val", VAL_EPISODES, rate), fixed_clouds(regions, objects, "test",
+                                                                                         TEST_EPISODES, rate)
+    net = NETS[name][1](len(objects))
+    optimiser = torch.optim.Adam(net.parameters(), lr=1e-3)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, steps)
+    rng = np.random.default_rng([seed, int(round(rate * 100))])
+    best_val, best_state, start = -1.0, None, time.time()
+    for step in range(1, steps + 1):
+        labels, poses = sample_episodes(regions, "train", batch_size, len(objects), rng)
+        clouds, _ = noisy_point_clouds(scene, objects, labels, poses, N_POINTS, rate, rng)
+        net.train()
+        loss = F.cross_entropy(net(cloud_tensor(clouds)), torch.from_numpy(labels))
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+        schedule.step()
+        if step % 250 == 0 or step == steps:
+            val_acc = accuracy(net, *val)
+            if val_acc > best_val:
+                best_val, best_state = val_acc, copy.deepcopy(net.state_dict())
+    net.load_state_dict(best_state)
+    return {"accuracy": round(accuracy(net, *test), 4), "best_val_acc": round(best_val, 4), "steps": steps,
+            "batch_size": batch_size, "train_wall_s": round(time.time() - start, 1)}
+
+
+# -- our model under sensor noise --------------------------------------------------------------------------
+def best_learned_row(results: Path) -> tuple[str, dict[int, Path]]:
+    """The learned row of table1.json with the highest mean accuracy after 10 probes, and its checkpoints by
+    training seed."""
+    table_path = results / "table1.json"
+    if not table_path.is_file():
+        raise FileNotFoundError(f"{table_path}: run scripts/reproduce_table1.py first (our model's checkpoints)")
+    table = json.loads(table_path.read_text())["rows"]
+    learned = [row for row, entry in table.items() if "accuracy_mean_action" in entry]
+    row = max(learned, key=lambda r: table[r]["accuracy"][-1])
+    runs = [json.loads(p.read_text()) for p in sorted((results / "runs").glob(f"{row}-seed*.json"))]
+    return row, {r["seed"]: ROOT / r["best_checkpoint"] for r in runs}
+
+
+def test_under_noise(checkpoint: Path, rate: float) -> dict:
+    """Accuracy after each probe on the table's test episodes with each reading corrupted with probability rate."""
+    import pytorch_lightning as pl
+
+    from hg.lightning.callbacks import per_probe_table
+    from hg.lightning.cli import datamodule_from_checkpoint
+    from hg.lightning.module import HapticGlance
+
+    if not checkpoint.is_file():
+        raise FileNotFoundError(f"{checkpoint}: checkpoint of the table1 run not found (runs/ is not committed; "
+                                "rerun that row with scripts/reproduce_table1.py)")
+    data = datamodule_from_checkpoint(checkpoint, args=[
+        "--data.noise.miss_prob", str(rate), "--data.noise.false_contact_prob", str(rate),
+        "--data.eval_seed", str(EVAL_SEED), "--data.test_episodes", str(TEST_EPISODES)])
+    model = HapticGlance.load_from_checkpoint(checkpoint, map_location="cpu")
+    trainer = pl.Trainer(accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                         enable_model_summary=False, deterministic=True)
+    start = time.time()
+    trainer.test(model, datamodule=data, verbose=False)
+    columns = per_probe_table(trainer.callback_metrics, "test", model.hparams.n_probes)
+    return {"accuracy": round(columns["stochastic"][-1], 4),
+            "accuracy_per_probe": [round(v, 4) for v in columns["stochastic"]],
+            "checkpoint": str(checkpoint.relative_to(ROOT)), "test_wall_s": round(time.time() - start, 1)}
+
+
+# -- merge ------------------------------------------------------------------------------------------------
+def merge(out: Path) -> dict:
+    runs: dict[str, dict[float, list[dict]]] = {}
+    for path in sorted((out / "noise_runs").glob("*.json")):
+        run = json.loads(path.read_text())
+        runs.setdefault(run["model"], {}).setdefault(run["rate"], []).append(run)
+    if not runs:
+        raise SystemExit(f"{out / 'noise_runs'}: no finished runs to merge")
+    summary = {}
+    for model, by_rate in runs.items():
+        rates = sorted(by_rate)
+        values = [[r["accuracy"] for r in by_rate[rate]] for rate in rates]
+        summary[model] = {"label": by_rate[rates[0]][0]["label"], "rates": rates,
+                          "accuracy": [round(float(np.mean(v)), 4) for v in values],
+                          "std": [round(float(np.std(v, ddof=1)) if len(v) > 1 else 0.0, 4) for v in values],
+                          "seeds": [sorted(r["seed"] for r in by_rate[rate]) for rate in rates],
+                          "commits": sorted({r["commit"] for rs in by_rate.values() for r in rs})}
+    merged_at = commit(paths=())
+    write_atomic(out / "noise.json", json.dumps({"commit": merged_at, "test_episodes": TEST_EPISODES,
+                                                 "n_points": N_POINTS, "models": summary}, indent=1) + "\n")
+    write_atomic(out / "noise.png", noise_plot(summary))
+    write_atomic(out / "noise.md", noise_markdown(summary, merged_at, next(iter(next(iter(runs.values())).values()))[0]))
+    return {"commit": merged_at, **{m: s["accuracy"] for m, s in summary.items()}}
+
+
+def noise_plot(summary: dict) -> bytes:
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
+    for entry in summary.values():
+        ax.errorbar([100 * r for r in entry["rates"]], entry["accuracy"], yerr=entry["std"], marker="o",
+                    capsize=3, label=entry["label"])
+    ax.set(xlabel="noise rate (%)", ylabel="accuracy (10 points / 10 probes)", ylim=(0, 1.02),
+           title="Accuracy under noise (held-out test poses)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png")
+    plt.close(fig)
+    return buffer.getvalue()
+
+
+def noise_markdown(summary: dict, merged_at: str, example: dict) -> str:
+    rates = sorted({r for s in summary.values() for r in s["rates"]})
+    lines = ["# Accuracy under noise: PointNet and DGCNN on 10 noisy points, our model after 10 noisy probes", "",
+             f"Same {TEST_EPISODES} held-out test episodes as `table1.md`, mean +- std over seeds. Produced by "
+             f"`.venv/bin/python scripts/reproduce_noise.py`, merged at commit `{merged_at}` (runs at the commits "
+             "listed below).", "",
+             "- PointNet / DGCNN: trained and tested at each rate; 10 points sampled uniformly from the whole "
+             "object surface, that share of them replaced by uniform points of the pose volume. They see the whole "
+             "surface, top and bottom, without having to find the object first.",
+             "- Ours: the best learned row of `table1.md`, trained without noise, tested with each probe's reading "
+             "corrupted with probability = rate (a touch reported as a miss at the ray's end, or a miss as a touch "
+             "at a random point of the ray).", "",
+             "| model | " + " | ".join(f"{100 * r:.0f} %" for r in rates) + " | seeds | commits |",
+             "|---|" + "---:|" * len(rates) + "---|---|"]
+    for entry in summary.values():
+        cells = [f"{entry['accuracy'][entry['rates'].index(r)]:.3f} +- {entry['std'][entry['rates'].index(r)]:.3f}"
+                 if r in entry["rates"] else "" for r in rates]
+        lines.append(f"| {entry['label']} | " + " | ".join(cells) +
+                     f" | {entry['seeds'][0]} | {', '.join(f'`{c}`' for c in entry['commits'])} |")
+    lines += ["", "![accuracy vs noise](noise.png)", "", f"Hardware: {example['hardware']}.", ""]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--models", nargs="+", default=["pointnet", "dgcnn", "ours"],
+                        choices=["pointnet", "dgcnn", "ours"])
+    parser.add_argument("--rates", nargs="+", type=float, default=list(RATES))
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2], help="training seeds of the baselines")
+    parser.add_argument("--steps", type=int, default=1000, help="training steps of the baselines")
+    parser.add_argument("--batch-size", type=int, default=64)
+    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
+    parser.add_argument("--merge-only", action="store_true")
+    args = parser.parse_args()
+    if not args.merge_only:
+        jobs = [(m, r, s) for s in args.seeds for m in args.models if m != "ours" for r in args.rates]  # seed-major
+        if "ours" in args.models:
+            row, checkpoints = best_learned_row(args.out)
+            jobs += [("ours", r, seed) for r in args.rates for seed in sorted(checkpoints)]
+        for model, rate, seed in jobs:
+            path = args.out / "noise_runs" / f"{model}-rate{round(rate * 100):02d}-seed{seed}.json"
+            if path.is_file():
+                continue
+            code_commit = commit()
+            if model == "ours":
+                result = test_under_noise(checkpoints[seed], rate)
+                result["label"] = f"ours: {row} after 10 probes"
+            else:
+                result = train_point_cloud_net(model, rate, seed, args.steps, args.batch_size)
+                result["label"] = NETS[model][0]
+            result.update(model=model, rate=rate, seed=seed, commit=code_commit, hardware=hardware())
+            write_atomic(path, json.dumps(result, indent=1) + "\n")
+            print(f"{path.stem}: accuracy {result['accuracy']:.3f}", flush=True)
+    print(json.dumps(merge(args.out)))
+
+
+if __name__ == "__main__":
+    main()
