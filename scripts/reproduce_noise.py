@@ -241,4 +241,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except (ValueError, FileNotFoundError) as exc:  # bad inputs end in one line naming the file
+        sys.exit(f"reproduce_noise: error: {exc}")

@@ -66,7 +66,8 @@ def run_name(row: str, seed: int) -> str:
 
 
 # -- one run (child process) -------------------------------------------------------------------------------
-def train_and_test(row: str, seed: int, runs_dir: Path, out_dir: Path, steps: int | None, jobs: int) -> None:
+def train_and_test(row: str, seed: int, runs_dir: Path, out_dir: Path, steps: int | None, jobs: int,
+                   test_episodes: int = TEST_EPISODES) -> None:
     """Train one (row, seed) with the paper protocol, resuming from its last checkpoint; score the checkpoint
     that was best on val on the test set; write the run JSON atomically (its presence marks the run done)."""
     from hg.lightning.cli import cli
@@ -76,7 +77,7 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out_dir: Path, steps: in
     folder = runs_dir / name
     checkpoints = folder / "checkpoints"
     args = ["--config", str(ROOT / ROWS[row].config), "--seed_everything", str(seed),
-            "--data.eval_seed", str(EVAL_SEED), "--data.test_episodes", str(TEST_EPISODES),
+            "--data.eval_seed", str(EVAL_SEED), "--data.test_episodes", str(test_episodes),
             "--trainer.logger.init_args.save_dir", str(folder), "--trainer.logger.init_args.name", name,
             "--checkpoint.dirpath", str(checkpoints), "--last_checkpoint.dirpath", str(checkpoints)]
     if steps is not None:
@@ -104,7 +105,7 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out_dir: Path, steps: in
         "best_checkpoint": str(Path(best.best_model_path).relative_to(ROOT)) if best.best_model_path.startswith(str(ROOT))
         else best.best_model_path,
         "train_wall_s": round(train_s, 1), "test_wall_s": round(test_s, 1), "parallel_jobs": jobs,
-        "test_episodes": TEST_EPISODES, "test_fingerprint": test_fingerprint(run.datamodule),
+        "test_episodes": test_episodes, "test_fingerprint": test_fingerprint(run.datamodule),
         "commit": code_commit, "hardware": hardware(), "torch_threads": __import__("torch").get_num_threads(),
     }
     write_atomic(out_dir / "runs" / f"{name}.json", json.dumps(result, indent=1) + "\n")
@@ -134,7 +135,7 @@ def load_runs(out_dir: Path) -> dict[str, list[dict]]:
             runs.setdefault(run["row"], []).append(run)
         except (json.JSONDecodeError, KeyError) as exc:
             raise ValueError(f"{path}: not a run result of this script ({exc})") from exc
-    fingerprints = {r["test_fingerprint"] for rs in runs.values() for r in rs}
+    fingerprints = {(r["test_episodes"], r["test_fingerprint"]) for rs in runs.values() for r in rs}
     if len(fingerprints) > 1:
         raise ValueError(f"{out_dir / 'runs'}: runs were scored on different test episodes ({sorted(fingerprints)})")
     return {row: sorted(runs[row], key=lambda r: r["seed"]) for row in ROWS if row in runs}
@@ -185,10 +186,10 @@ def targets(table: dict[str, dict]) -> list[str]:
 
 def markdown(table: dict[str, dict], runs: dict[str, list[dict]], merged_at: str) -> str:
     n = len(next(iter(table.values()))["accuracy"])
-    rows = list(table)
+    rows, first = list(table), next(iter(runs.values()))[0]
     lines = ["# Table 1, reproduced and compared",
              "",
-             f"Accuracy after each probe on the same {TEST_EPISODES} held-out test episodes (pose regions never used in "
+             f"Accuracy after each probe on the same {first['test_episodes']} held-out test episodes (pose regions never used in "
              "training), single stochastic rollout, mean +- std over training seeds; each model is the checkpoint "
              "best on the validation episodes (a third, separate pose region). The paper's figures (Riou et al., "
              "ICASSP 2021, Table 1) stand beside ours in the `paper` columns; they come from the authors' own "
@@ -221,7 +222,6 @@ def markdown(table: dict[str, dict], runs: dict[str, list[dict]], merged_at: str
         lines.append(f"| {table[r]['label']} | `{table[r]['config']}` | {table[r]['seeds']} | "
                      f"{', '.join(f'{s:.0f}' for s in table[r]['train_wall_s'])} | {jobs} | "
                      f"{', '.join(f'`{c}`' for c in table[r]['commits'])} |")
-    first = next(iter(runs.values()))[0]
     lines += ["", f"Hardware: {first['hardware']}. With two jobs in parallel each trains on one torch thread.",
               "A run resumed after an interruption counts only the wall time of its last attempt "
               "(`resumed_from_step` in its JSON).", "", "## Targets (issue #4)", "", *targets(table), ""]
@@ -236,7 +236,8 @@ def merge(out_dir: Path) -> dict:
         raise SystemExit(f"{out_dir / 'runs'}: no finished runs to merge")
     table = summarise(runs)
     merged_at = commit(paths=())
-    write_atomic(out_dir / "table1.json", json.dumps({"commit": merged_at, "test_episodes": TEST_EPISODES,
+    write_atomic(out_dir / "table1.json", json.dumps({"commit": merged_at,
+                                                      "test_episodes": next(iter(runs.values()))[0]["test_episodes"],
                                                       "test_fingerprint": next(iter(runs.values()))[0]["test_fingerprint"],
                                                       "rows": table, "paper": PAPER}, indent=1) + "\n")
     write_atomic(out_dir / "table1.md", markdown(table, runs, merged_at))
@@ -253,13 +254,14 @@ def main() -> None:
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--jobs", type=int, default=1, help="runs trained at once (each gets cores/jobs threads)")
     parser.add_argument("--steps", type=int, default=None, help="override max_steps (smoke tests only)")
+    parser.add_argument("--test-episodes", type=int, default=TEST_EPISODES, help="test set size (smoke tests only)")
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
     parser.add_argument("--runs-dir", type=Path, default=ROOT / "runs" / "table1", help="checkpoints and wandb runs")
     parser.add_argument("--merge-only", action="store_true")
     parser.add_argument("--one", nargs=2, metavar=("ROW", "SEED"), help=argparse.SUPPRESS)  # the child's job
     args = parser.parse_args()
     if args.one:
-        train_and_test(args.one[0], int(args.one[1]), args.runs_dir, args.out, args.steps, args.jobs)
+        train_and_test(args.one[0], int(args.one[1]), args.runs_dir, args.out, args.steps, args.jobs, args.test_episodes)
         return
     if not args.merge_only:
         todo = [(row, seed) for seed in args.seeds for row in args.rows  # seed-major: every row gets a seed early
@@ -272,7 +274,7 @@ def main() -> None:
             log = args.runs_dir / run_name(row, seed) / "log.txt"
             log.parent.mkdir(parents=True, exist_ok=True)
             command = [sys.executable, __file__, "--one", row, str(seed), "--out", str(args.out),
-                       "--runs-dir", str(args.runs_dir), "--jobs", str(args.jobs)]
+                       "--runs-dir", str(args.runs_dir), "--jobs", str(args.jobs), "--test-episodes", str(args.test_episodes)]
             command += ["--steps", str(args.steps)] if args.steps is not None else []
             env = {**os.environ, "OMP_NUM_THREADS": str(threads), "WANDB_MODE": os.environ.get("WANDB_MODE", "offline")}
             start = time.time()
@@ -290,4 +292,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except (ValueError, FileNotFoundError) as exc:  # bad inputs end in one line naming the file
+        sys.exit(f"reproduce_table1: error: {exc}")

@@ -1,0 +1,90 @@
+"""The Table 1 and noise scripts: real (tiny) runs, resuming instead of recomputing, and the merge's checks."""
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "WANDB_MODE": "disabled", "OMP_NUM_THREADS": "1"}
+
+
+def script(name: str):
+    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+def run(name: str, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(ROOT / "scripts" / f"{name}.py"), *args], capture_output=True,
+                          text=True, env=ENV, cwd=ROOT, timeout=600)
+
+
+def fake_run(out: Path, row: str, seed: int, accuracy: list[float], fingerprint: str = "abc") -> None:
+    learned = row not in ("random", "line_scan")
+    record = {"row": row, "label": row, "config": f"configs/{row}.yaml", "seed": seed, "accuracy": accuracy,
+              "accuracy_mean_action": accuracy if learned else None, "train_wall_s": 1.0, "parallel_jobs": 1,
+              "test_episodes": 2048, "test_fingerprint": fingerprint, "commit": "abc1234", "hardware": "cpu"}
+    (out / "runs").mkdir(parents=True, exist_ok=True)
+    (out / "runs" / f"{row}-seed{seed}.json").write_text(json.dumps(record))
+
+
+def test_table_merge_means_stds_paper_columns_and_targets(tmp_path):
+    table1 = script("reproduce_table1")
+    fake_run(tmp_path, "pcrn_fc", 0, [0.5] * 9 + [0.9])
+    fake_run(tmp_path, "pcrn_fc", 1, [0.7] * 9 + [1.0])
+    fake_run(tmp_path, "random", 0, [0.4] * 10)
+    fake_run(tmp_path, "lstm", 0, [0.6] * 10)
+    summary = table1.merge(tmp_path)
+    assert summary["pcrn_fc"][-1] == pytest.approx(0.95) and summary["random"][0] == pytest.approx(0.4)
+    saved = json.loads((tmp_path / "table1.json").read_text())
+    assert saved["rows"]["pcrn_fc"]["accuracy_std"][0] == pytest.approx(0.1414, abs=1e-4)  # ddof=1 over 2 seeds
+    assert saved["rows"]["pcrn_fc"]["seeds"] == [0, 1] and saved["paper"]["PCRN-FC"]["10"] == 0.796
+    text = (tmp_path / "table1.md").read_text()
+    assert "| 10 | 0.950 +- 0.071 | 0.600 +- 0.000 | 0.400 +- 0.000 | 0.723 | 0.843 | 0.796 |" in text
+    assert "After 10 probes >= 0.95: met (0.950, +0.000)" in text
+    assert "After 5 probes >= 0.85: not met (0.600, -0.250)" in text
+    assert "Beats random + PCRN-FC" not in text and "by >= 0.15 after 10 probes: met (+0.550)" in text
+    assert "Beats the LSTM at every probe count from 3 on: not met at [3, 4, 5, 6, 7, 8, 9]." in text
+    assert (tmp_path / "table1.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_table_merge_refuses_runs_scored_on_different_test_episodes(tmp_path):
+    fake_run(tmp_path, "pcrn_fc", 0, [0.5] * 10, fingerprint="aaa")
+    fake_run(tmp_path, "random", 0, [0.4] * 10, fingerprint="bbb")
+    result = run("reproduce_table1", "--merge-only", "--out", str(tmp_path))
+    assert result.returncode != 0
+    assert "different test episodes" in result.stderr and str(tmp_path / "runs") in result.stderr
+    assert not (tmp_path / "table1.md").exists()  # nothing half-written
+
+
+def test_table_row_trains_once_then_is_reused(tmp_path):
+    args = ["--rows", "random", "--seeds", "0", "--steps", "2", "--test-episodes", "64", "--out", str(tmp_path),
+            "--runs-dir", str(tmp_path / "ckpt")]
+    first = run("reproduce_table1", *args)
+    assert first.returncode == 0, first.stdout[-2000:] + first.stderr[-2000:]
+    record = json.loads((tmp_path / "runs" / "random-seed0.json").read_text())
+    assert len(record["accuracy"]) == 10 and all(0 <= a <= 1 for a in record["accuracy"])
+    assert record["test_episodes"] == 64 and record["max_steps"] == 2 and record["accuracy_mean_action"] is None
+    assert (tmp_path / "ckpt" / "random-seed0" / "checkpoints" / "last.ckpt").is_file()
+    second = run("reproduce_table1", *args)
+    assert second.returncode == 0 and "0 runs to train" in second.stdout
+    assert json.loads(second.stdout.strip().splitlines()[-1])["random"] == record["accuracy"]
+
+
+def test_noise_baseline_runs_and_merges_and_ours_needs_the_table(tmp_path):
+    args = ["--models", "pointnet", "--rates", "0", "0.5", "--seeds", "0", "--steps", "3", "--out", str(tmp_path)]
+    first = run("reproduce_noise", *args)
+    assert first.returncode == 0, first.stderr[-2000:]
+    saved = json.loads((tmp_path / "noise.json").read_text())
+    assert saved["models"]["pointnet"]["rates"] == [0.0, 0.5] and len(saved["models"]["pointnet"]["accuracy"]) == 2
+    assert (tmp_path / "noise.png").read_bytes()[:4] == b"\x89PNG" and "PointNet" in (tmp_path / "noise.md").read_text()
+    second = run("reproduce_noise", *args)
+    assert second.returncode == 0 and "accuracy" not in second.stdout.splitlines()[0]  # nothing retrained
+    ours = run("reproduce_noise", "--models", "ours", "--out", str(tmp_path))
+    assert ours.returncode != 0 and "table1.json" in ours.stderr and "reproduce_table1.py" in ours.stderr
