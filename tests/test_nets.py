@@ -45,6 +45,16 @@ def test_p2carb_causal(aggregate: str) -> None:
     assert_causal(net, torch.randn(B, N, 4))
 
 
+@pytest.mark.parametrize("aggregate", ["sum", "mean"])
+def test_p2carb_step_by_step_equals_forward(aggregate: str) -> None:
+    net = P2CARB(4, feat_dims=(8, 8, 16), att_width=16, aggregate=aggregate)
+    x, memory = torch.randn(B, N, 4), None
+    full = net(x)
+    for k in range(N):
+        out, memory = net.step(x[:, k], memory)
+        assert torch.allclose(out, full[:, k], atol=1e-5)
+
+
 def test_p2carb_rejects_unknown_aggregate() -> None:
     with pytest.raises(ValueError, match="aggregate"):
         P2CARB(4, aggregate="max")
@@ -115,7 +125,7 @@ def test_location_states_match_state() -> None:
     rep = torch.randn(B, N, 8)
     states = net.states(rep)
     for i in range(N):
-        assert torch.allclose(states[:, i], net.state(rep, i), atol=1e-6)
+        assert torch.allclose(states[:, i], net.state(rep[:, :i].sum(1), i), atol=1e-6)
     assert torch.equal(net.state(None, 0, batch_size=B), net.start.expand(B, -1))
     with pytest.raises(ValueError, match="batch_size"):
         net.state(None, 0)
@@ -151,3 +161,16 @@ def test_pointcloud_shapes(make) -> None:
 def test_dgcnn_k_must_be_below_point_count() -> None:
     with pytest.raises(ValueError, match="k=10"):
         DGCNN(4, k=10)(torch.randn(2, 10, 3))
+
+
+@pytest.mark.parametrize(
+    "make", [lambda: PCRN(width=16, out_dim=32), lambda: LSTMEncoder(hidden=32)], ids=["PCRN", "LSTM"]
+)
+def test_encoders_step_by_step_equal_forward(make) -> None:
+    """The rollout encodes one probe at a time; evaluate() encodes whole sequences: they must agree."""
+    encoder = make()
+    requests, points, memory = torch.randn(B, N, 4), torch.randn(B, N, 4), None
+    full = encoder(requests, points)
+    for k in range(N):
+        out, memory = encoder.step(requests[:, k], points[:, k], memory)
+        assert torch.allclose(out, full[:, k], atol=1e-5), k

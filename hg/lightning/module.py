@@ -125,17 +125,16 @@ class HapticGlance(pl.LightningModule):
             self.sim = None
 
     # -- rollout -------------------------------------------------------------------------------------
-    def next_actions(self, requests: Tensor, points: Tensor, deterministic: bool,
+    def next_actions(self, k: int, batch: int, rep_sum: Tensor | None, deterministic: bool,
                      generator: torch.Generator) -> Tensor:
-        """Request k + 1 of every episode from the first k requests and points (k may be 0)."""
-        batch, k = requests.shape[:2]
+        """Request k + 1 of every episode (k may be 0); a learned policy reads the sum of the representations
+        after probes 1..k, which the rollout keeps running."""
         policy = self.hparams.policy
         if policy == "random":
             return torch.rand(batch, 4, generator=generator) * 2 - 1
         if policy == "line_scan":
             return self.line_scan_requests()[k].expand(batch, 4).clone()
-        rep = self.encoder(requests, points) if k > 0 else None
-        state = self.location.state(rep, k, batch_size=batch)
+        state = self.location.state(rep_sum, k, batch_size=batch)
         offset = None if self.prior_offsets is None else self.prior_offsets[k]
         return self.location.sample(state, deterministic=deterministic, generator=generator, offset=offset)[0]
 
@@ -154,9 +153,9 @@ class HapticGlance(pl.LightningModule):
         generator = torch.Generator().manual_seed(seed)
         actions, points = torch.zeros(batch, n, 4), torch.zeros(batch, n, 4)
         reached = torch.ones(batch, n, dtype=torch.bool)
+        memory = rep_sum = None  # the encoder's memory of the probes so far, and the sum of its outputs
         for k in range(n):
-            action = self.next_actions(actions[:, :k].clamp(-1, 1).to(self.device), points[:, :k].to(self.device),
-                                       deterministic, generator).cpu()
+            action = self.next_actions(k, batch, rep_sum, deterministic, generator).cpu()
             if not torch.isfinite(action).all():
                 raise FloatingPointError(f"non-finite probe request from the '{self.hparams.policy}' policy at probe "
                                          f"{k + 1}, global step {self.global_step}")
@@ -166,6 +165,11 @@ class HapticGlance(pl.LightningModule):
             points[:, k, :3] *= self.hparams.point_scale  # the policy must see what evaluate() will see
             if sim.arm is not None:
                 reached[:, k] = torch.from_numpy(achieved(result.pose_error))
+            if self.hparams.policy == "learned" and k + 1 < n:  # each probe is encoded once (evaluate() redoes
+                # the whole sequence with gradients); the last one is never read by the policy
+                rep, memory = self.encoder.step(action.clamp(-1, 1).to(self.device), points[:, k].to(self.device),
+                                                memory)
+                rep_sum = rep if rep_sum is None else rep_sum + rep
         device = self.device
         return Rollout(actions.to(device), actions.clamp(-1, 1).to(device), points.to(device), reached.to(device))
 

@@ -48,16 +48,17 @@ class LocationNetwork(nn.Module):
             MaskedLinear(d_hidden, d_out, strict=True),
         )
 
-    def state(self, rep: Tensor | None, k: int, batch_size: int | None = None) -> Tensor:
-        """s_k from which request k + 1 is drawn: mean pool of rep[:, :k] (B, K, D), or the learned start
-        for k = 0. With rep None (k = 0 only) batch_size must be given, so the start is never silently 1 row."""
+    def state(self, rep_sum: Tensor | None, k: int, batch_size: int | None = None) -> Tensor:
+        """s_k from which request k + 1 is drawn: the mean of the first k representations, given as their sum
+        rep_sum (B, D) (a rollout keeps it running), or the learned start for k = 0. With rep_sum None (k = 0
+        only) batch_size must be given, so the start is never silently 1 row."""
         if k == 0:
-            if rep is None and batch_size is None:
+            if rep_sum is None and batch_size is None:
                 raise ValueError("LocationNetwork.state(None, 0) needs batch_size")
-            return self.start.expand(rep.shape[0] if rep is not None else batch_size, -1)
-        if rep is None or rep.shape[1] < k:
-            raise ValueError(f"LocationNetwork.state: k={k} needs at least k probes in rep")
-        return rep[:, :k].mean(1)
+            return self.start.expand(rep_sum.shape[0] if rep_sum is not None else batch_size, -1)
+        if rep_sum is None:
+            raise ValueError(f"LocationNetwork.state: k={k} needs the sum of the first k representations")
+        return rep_sum / k
 
     def states(self, rep: Tensor) -> Tensor:
         """All s_i of a rollout at once, (B, N, D) -> (B, N, D): row i is state(rep, i)."""

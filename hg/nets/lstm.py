@@ -22,3 +22,9 @@ class LSTMEncoder(nn.Module):
         """S_R (B, N, request_dim), S_C (B, N, point_dim) -> LSTM output after each probe (B, N, hidden)."""
         out, _ = self.lstm(self.fuse(torch.cat([self.request(requests), self.touch(points)], -1)))
         return out
+
+    def step(self, request: Tensor, point: Tensor, memory: tuple[Tensor, Tensor] | None) -> tuple[Tensor, tuple]:
+        """One more probe, (B, request_dim), (B, point_dim) -> (B, hidden): row k of forward(), the LSTM
+        carried on from its (h, c) after probes 1..k - 1."""
+        out, memory = self.lstm(self.fuse(torch.cat([self.request(request), self.touch(point)], -1))[:, None], memory)
+        return out[:, 0], memory

@@ -37,3 +37,12 @@ class P2CARB(nn.Module):
         context = cumulative_mean(f)  # C_k = mean(F_1..F_k)
         g = f * self.attention(torch.cat([f, context], -1))
         return g.cumsum(1) if self.aggregate == "sum" else cumulative_mean(g)
+
+    def step(self, x: Tensor, memory: tuple[int, Tensor, Tensor] | None) -> tuple[Tensor, tuple[int, Tensor, Tensor]]:
+        """One more probe, (B, in_dim) -> (B, out_dim): row k of forward() from the running sums of F and
+        F * W over probes 1..k - 1, so a rollout encodes each probe once instead of its whole history."""
+        f = self.features(x)
+        count, f_sum, g_sum = memory if memory is not None else (0, torch.zeros_like(f), torch.zeros_like(f))
+        count, f_sum = count + 1, f_sum + f
+        g_sum = g_sum + f * self.attention(torch.cat([f, f_sum / count], -1))
+        return (g_sum if self.aggregate == "sum" else g_sum / count), (count, f_sum, g_sum)

@@ -21,3 +21,11 @@ class PCRN(nn.Module):
     def forward(self, requests: Tensor, points: Tensor) -> Tensor:
         """S_R (B, N, request_dim) (Py, Ux, Uy, Uz), S_C (B, N, point_dim) (X, Y, Z, T) -> (B, N, out_dim)."""
         return self.fuse(torch.cat([self.requests(requests), self.points(points)], -1))
+
+    def step(self, request: Tensor, point: Tensor, memory: tuple | None) -> tuple[Tensor, tuple]:
+        """One more probe, (B, request_dim), (B, point_dim) -> (B, out_dim) and the memory for the next one:
+        row k of forward(), computed from probe k and the memory of probes 1..k - 1."""
+        requests_memory, points_memory = memory if memory is not None else (None, None)
+        r, requests_memory = self.requests.step(request, requests_memory)
+        p, points_memory = self.points.step(point, points_memory)
+        return self.fuse(torch.cat([r, p], -1)), (requests_memory, points_memory)
