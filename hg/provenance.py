@@ -29,3 +29,9 @@ def hardware() -> str:
               if line.startswith("model name")] if cpuinfo.exists() else []
     cpu = models[0] if models else platform.processor() or platform.machine()
     return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, torch {torch.__version__}"
+
+
+def repo_path(path: str | Path) -> str:
+    """A path as results record it: relative to the repository when inside it (portable), else absolute."""
+    path = Path(path).resolve()
+    return str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path)

@@ -40,7 +40,7 @@ import torch.nn.functional as F  # noqa: E402
 from hg.atomic import write_atomic  # noqa: E402
 from hg.lightning.data import EvalEpisodes  # noqa: E402
 from hg.nets import DGCNN, PointNet  # noqa: E402
-from hg.provenance import commit, hardware  # noqa: E402
+from hg.provenance import commit, hardware, repo_path  # noqa: E402
 from hg.sim import PoseRegions, Scene, load_object_set, sample_episodes  # noqa: E402
 from hg.sim.pointclouds import noisy_point_clouds  # noqa: E402
 
@@ -105,20 +105,23 @@ def train_point_cloud_net(name: str, rate: float, seed: int, steps: int, batch_s
 
 
 # -- our model under sensor noise --------------------------------------------------------------------------
-def best_learned_row(results: Path) -> tuple[str, dict[int, Path]]:
-    """The learned row of table1.json with the highest mean accuracy after 10 probes, and its checkpoints by
-    training seed."""
+def best_learned_row(results: Path) -> tuple[str, dict[int, Path], int]:
+    """The learned row of table1.json with the highest mean accuracy after 10 probes, its checkpoints by
+    training seed, and the size of the test set the table used."""
     table_path = results / "table1.json"
     if not table_path.is_file():
         raise FileNotFoundError(f"{table_path}: run scripts/reproduce_table1.py first (our model's checkpoints)")
-    table = json.loads(table_path.read_text())["rows"]
+    saved = json.loads(table_path.read_text())
+    table = saved["rows"]
     learned = [row for row, entry in table.items() if "accuracy_mean_action" in entry]
+    if not learned:
+        raise ValueError(f"{table_path}: no learned row (only {', '.join(table)}); train one with reproduce_table1.py")
     row = max(learned, key=lambda r: table[r]["accuracy"][-1])
     runs = [json.loads(p.read_text()) for p in sorted((results / "runs").glob(f"{row}-seed*.json"))]
-    return row, {r["seed"]: ROOT / r["best_checkpoint"] for r in runs}
+    return row, {r["seed"]: ROOT / r["best_checkpoint"] for r in runs}, saved["test_episodes"]
 
 
-def test_under_noise(checkpoint: Path, rate: float) -> dict:
+def test_under_noise(checkpoint: Path, rate: float, test_episodes: int = TEST_EPISODES) -> dict:
     """Accuracy after each probe on the table's test episodes with each reading corrupted with probability rate."""
     import pytorch_lightning as pl
 
@@ -131,7 +134,7 @@ def test_under_noise(checkpoint: Path, rate: float) -> dict:
                                 "rerun that row with scripts/reproduce_table1.py)")
     data = datamodule_from_checkpoint(checkpoint, args=[
         "--data.noise.miss_prob", str(rate), "--data.noise.false_contact_prob", str(rate),
-        "--data.eval_seed", str(EVAL_SEED), "--data.test_episodes", str(TEST_EPISODES)])
+        "--data.eval_seed", str(EVAL_SEED), "--data.test_episodes", str(test_episodes)])
     model = HapticGlance.load_from_checkpoint(checkpoint, map_location="cpu")
     trainer = pl.Trainer(accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
                          enable_model_summary=False, deterministic=True)
@@ -140,7 +143,7 @@ def test_under_noise(checkpoint: Path, rate: float) -> dict:
     columns = per_probe_table(trainer.callback_metrics, "test", model.hparams.n_probes)
     return {"accuracy": round(columns["stochastic"][-1], 4),
             "accuracy_per_probe": [round(v, 4) for v in columns["stochastic"]],
-            "checkpoint": str(checkpoint.relative_to(ROOT)), "test_wall_s": round(time.time() - start, 1)}
+            "checkpoint": repo_path(checkpoint), "test_wall_s": round(time.time() - start, 1)}
 
 
 # -- merge ------------------------------------------------------------------------------------------------
@@ -221,7 +224,7 @@ def main() -> None:
     if not args.merge_only:
         jobs = [(m, r, s) for s in args.seeds for m in args.models if m != "ours" for r in args.rates]  # seed-major
         if "ours" in args.models:
-            row, checkpoints = best_learned_row(args.out)
+            row, checkpoints, test_episodes = best_learned_row(args.out)
             jobs += [("ours", r, seed) for r in args.rates for seed in sorted(checkpoints)]
         for model, rate, seed in jobs:
             path = args.out / "noise_runs" / f"{model}-rate{round(rate * 100):02d}-seed{seed}.json"
@@ -229,7 +232,7 @@ def main() -> None:
                 continue
             code_commit = commit()
             if model == "ours":
-                result = test_under_noise(checkpoints[seed], rate)
+                result = test_under_noise(checkpoints[seed], rate, test_episodes)
                 result["label"] = f"ours: {row} after 10 probes"
             else:
                 result = train_point_cloud_net(model, rate, seed, args.steps, args.batch_size)

@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from hg.atomic import write_atomic  # noqa: E402
-from hg.provenance import commit, hardware  # noqa: E402
+from hg.provenance import commit, hardware, repo_path  # noqa: E402
 
 TEST_EPISODES = 2048  # the fixed held-out test set every row is scored on (data.eval_seed 0)
 EVAL_SEED = 0
@@ -102,8 +102,7 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out_dir: Path, steps: in
         "accuracy": [round(v, 4) for v in columns["stochastic"]],
         "accuracy_mean_action": [round(v, 4) for v in columns["mean_action"]] if "mean_action" in columns else None,
         "best_val_acc": round(float(best.best_model_score), 4) if best.best_model_score is not None else None,
-        "best_checkpoint": str(Path(best.best_model_path).relative_to(ROOT)) if best.best_model_path.startswith(str(ROOT))
-        else best.best_model_path,
+        "best_checkpoint": repo_path(best.best_model_path),
         "train_wall_s": round(train_s, 1), "test_wall_s": round(test_s, 1), "parallel_jobs": jobs,
         "test_episodes": test_episodes, "test_fingerprint": test_fingerprint(run.datamodule),
         "commit": code_commit, "hardware": hardware(), "torch_threads": __import__("torch").get_num_threads(),
