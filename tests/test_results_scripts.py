@@ -63,18 +63,25 @@ def test_table_merge_refuses_runs_scored_on_different_test_episodes(tmp_path):
     assert not (tmp_path / "table1.md").exists()  # nothing half-written
 
 
-def test_table_row_trains_once_then_is_reused(tmp_path):
-    args = ["--rows", "random", "--seeds", "0", "--steps", "2", "--test-episodes", "64", "--out", str(tmp_path),
+def test_table_row_trains_once_is_reused_and_feeds_the_noise_study(tmp_path):
+    args = ["--rows", "pcrn_fc", "--seeds", "0", "--steps", "2", "--test-episodes", "64", "--out", str(tmp_path),
             "--runs-dir", str(tmp_path / "ckpt")]
     first = run("reproduce_table1", *args)
     assert first.returncode == 0, first.stdout[-2000:] + first.stderr[-2000:]
-    record = json.loads((tmp_path / "runs" / "random-seed0.json").read_text())
-    assert len(record["accuracy"]) == 10 and all(0 <= a <= 1 for a in record["accuracy"])
-    assert record["test_episodes"] == 64 and record["max_steps"] == 2 and record["accuracy_mean_action"] is None
-    assert (tmp_path / "ckpt" / "random-seed0" / "checkpoints" / "last.ckpt").is_file()
+    record = json.loads((tmp_path / "runs" / "pcrn_fc-seed0.json").read_text())
+    assert len(record["accuracy"]) == len(record["accuracy_mean_action"]) == 10
+    assert all(0 <= a <= 1 for a in record["accuracy"])
+    assert record["test_episodes"] == 64 and record["max_steps"] == 2
+    assert (tmp_path / "ckpt" / "pcrn_fc-seed0" / "checkpoints" / "last.ckpt").is_file()
     second = run("reproduce_table1", *args)
     assert second.returncode == 0 and "0 runs to train" in second.stdout
-    assert json.loads(second.stdout.strip().splitlines()[-1])["random"] == record["accuracy"]
+    assert json.loads(second.stdout.strip().splitlines()[-1])["pcrn_fc"] == record["accuracy"]
+    # our model under sensor noise: the table's checkpoint, its test episodes, each reading corrupted
+    ours = run("reproduce_noise", "--models", "ours", "--rates", "0", "0.5", "--out", str(tmp_path))
+    assert ours.returncode == 0, ours.stderr[-2000:]
+    clean, noisy = (json.loads((tmp_path / "noise_runs" / f"ours-rate{r}-seed0.json").read_text()) for r in ("00", "50"))
+    assert clean["accuracy"] == record["accuracy"][-1]  # rate 0 is the table's own test
+    assert clean["checkpoint"] == noisy["checkpoint"] == record["best_checkpoint"]
 
 
 def test_noise_baseline_runs_and_merges_and_ours_needs_the_table(tmp_path):
