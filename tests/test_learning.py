@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from hg.lightning import HapticGlance, ProbeDataModule, discounted_returns, hybrid_loss
+from hg.lightning.module import relative_to_first_touch
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = str(ROOT / "configs" / "tiny.yaml")
@@ -83,15 +84,29 @@ def test_rollout_is_a_function_of_the_batch_seed(data):
     assert not torch.equal(first.actions, mean_action.actions)
 
 
-def test_log_prob_is_taken_under_the_policy_that_acted(data):
-    """The states rebuilt for the loss must be those the rollout sampled from: the mean-action rollout's
-    requests are then exactly the means the loss pass computes."""
-    model = make_model(data)
+@pytest.mark.parametrize("encoder, point_frame", [("pcrn", "episode"), ("pcrn", "first_touch"), ("lstm", "episode")])
+def test_log_prob_is_taken_under_the_policy_that_acted(data, encoder, point_frame):
+    """The states rebuilt for the loss (whole sequences) must be those the rollout sampled from (one probe at a
+    time): the mean-action rollout's requests are then exactly the means the loss pass computes."""
+    model = make_model(data, encoder=encoder, point_frame=point_frame)
     batch = first_batch(data)
     rollout = model.rollout(batch["labels"], batch["poses"], 1, deterministic=True)
-    states = model.location.states(model.encoder(rollout.requests, rollout.points))
+    states = model.location.states(model.encoder(rollout.requests, model.encoder_points(rollout.points)))
     mu, _ = model.location.distribution(states, rollout.actions)
     torch.testing.assert_close(rollout.actions, mu)
+
+
+def test_points_relative_to_first_touch():
+    points = torch.tensor([[[1.0, 1.0, 1.0, 0.0], [2.0, 3.0, -1.0, 1.0], [5.0, 5.0, 5.0, 0.0], [3.0, 3.0, 0.0, 1.0]],
+                           [[1.0, 2.0, 3.0, 0.0], [4.0, 5.0, 6.0, 0.0], [7.0, 8.0, 9.0, 0.0], [1.0, 1.0, 1.0, 0.0]]])
+    out = relative_to_first_touch(points)
+    expected = torch.tensor([[[1.0, 1.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0], [3.0, 2.0, 6.0, 0.0], [1.0, 0.0, 1.0, 1.0]],
+                             points[1].tolist()])
+    torch.testing.assert_close(out, expected)  # before the first touch, and without any touch, nothing moves
+    for k in range(1, 5):  # causal: a prefix gives the same rows
+        torch.testing.assert_close(relative_to_first_touch(points[:, :k]), out[:, :k])
+    with pytest.raises(ValueError, match="model.point_frame='touch'"):
+        HapticGlance(point_frame="touch")
 
 
 @pytest.mark.parametrize("policy", ["random", "line_scan"])

@@ -27,6 +27,19 @@ def discounted_returns(rewards: Tensor, gamma: float) -> Tensor:
     return returns
 
 
+def relative_to_first_touch(points: Tensor) -> Tensor:
+    """(B, N, 4) points with X, Y, Z taken relative to the episode's first touch for that touch and every later
+    probe; probes before it keep their coordinates. Causal (probe k reads probes <= k), so a rollout may apply it
+    to the prefix it has. Beyond the paper: the object's shape, not where it lies, is the class cue."""
+    touched = points[..., 3] > 0.5
+    seen = touched.cumsum(1) > 0  # (B, N): a touch at or before probe k
+    first = touched.float().argmax(1)  # index of the first touch (0 when there is none; then seen is all False)
+    reference = points[torch.arange(len(points)), first, :3]  # (B, 3)
+    out = points.clone()
+    out[..., :3] = points[..., :3] - seen[..., None] * reference[:, None]
+    return out
+
+
 def hybrid_loss(logits: Tensor, labels: Tensor, log_pi: Tensor | None, baseline: Tensor | None, gamma: float,
                 beta: float, normalize_advantage: bool = False,
                 reward: Literal["correct", "log_gain"] = "correct") -> dict[str, Tensor]:
@@ -83,7 +96,8 @@ class HapticGlance(pl.LightningModule):
                  gamma: float = 0.95, beta: float = 1.0, lr: float = 1e-3, point_scale: float = 2.0,
                  normalize_advantage: bool = False, policy_reads_detached: bool = False,
                  reward: Literal["correct", "log_gain"] = "correct", policy_lr_scale: float = 1.0,
-                 prior: Literal["none", "line_scan"] = "none") -> None:
+                 prior: Literal["none", "line_scan"] = "none",
+                 point_frame: Literal["episode", "first_touch"] = "episode") -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -108,6 +122,8 @@ class HapticGlance(pl.LightningModule):
         self.location = LocationNetwork(dim, hidden=128, std_floor=std_floor, std_max=std_max)
         self.baseline = Baseline(dim)
         self.sim: ProbeSimulator | None = None
+        if point_frame not in ("episode", "first_touch"):
+            raise ValueError(f"model.point_frame={point_frame!r}: expected 'episode' or 'first_touch'")
         if prior not in ("none", "line_scan"):
             raise ValueError(f"model.prior={prior!r}: expected 'none' or 'line_scan'")
         # beyond the paper: the learned policy may start from the line scan and learn where to deviate from it
@@ -167,16 +183,20 @@ class HapticGlance(pl.LightningModule):
                 reached[:, k] = torch.from_numpy(achieved(result.pose_error))
             if self.hparams.policy == "learned" and k + 1 < n:  # each probe is encoded once (evaluate() redoes
                 # the whole sequence with gradients); the last one is never read by the policy
-                rep, memory = self.encoder.step(action.clamp(-1, 1).to(self.device), points[:, k].to(self.device),
-                                                memory)
+                rep, memory = self.encoder.step(action.clamp(-1, 1).to(self.device),
+                                                self.encoder_points(points[:, :k + 1])[:, k].to(self.device), memory)
                 rep_sum = rep if rep_sum is None else rep_sum + rep
         device = self.device
         return Rollout(actions.to(device), actions.clamp(-1, 1).to(device), points.to(device), reached.to(device))
 
+    def encoder_points(self, points: Tensor) -> Tensor:
+        """The points as the encoder reads them: in the episode frame (the paper) or relative to the first touch."""
+        return relative_to_first_touch(points) if self.hparams.point_frame == "first_touch" else points
+
     # -- loss ----------------------------------------------------------------------------------------
     def evaluate(self, rollout: Rollout, labels: Tensor) -> tuple[dict[str, Tensor], Tensor]:
         """Forward pass over a finished rollout: the loss terms and the logits (B, N, C)."""
-        rep = self.encoder(rollout.requests, rollout.points)
+        rep = self.encoder(rollout.requests, self.encoder_points(rollout.points))
         logits = self.classifier(rep)
         log_pi = baseline = None
         if self.hparams.policy == "learned":
