@@ -42,15 +42,18 @@ class Row:
     label: str
     paper: str | None = None  # the paper's column this row reproduces
     learned: bool = True
+    encoder: str = "pcrn"
 
 
 ROWS = {
     "pcrn_fc": Row("configs/pcrn_fc.yaml", "PCRN-FC", paper="PCRN-FC"),
     "pcrn_nclass": Row("configs/pcrn_nclass.yaml", "PCRN-N-class", paper="PCRN-N-class"),
-    "lstm": Row("configs/lstm.yaml", "LSTM", paper="LSTM"),
+    "lstm": Row("configs/lstm.yaml", "LSTM", paper="LSTM", encoder="lstm"),
     "random": Row("configs/random.yaml", "random probes + PCRN-FC", learned=False),
     "line_scan": Row("configs/line_scan.yaml", "line scan + PCRN-FC", learned=False),
     "pcrn_fc_plus": Row("configs/pcrn_fc_plus.yaml", "PCRN-FC+ (beyond the paper)"),
+    "centre_scan": Row("configs/centre_scan.yaml", "centre-out scan + PCRN-FC (beyond the paper)", learned=False),
+    "pcrn_fc_centre": Row("configs/pcrn_fc_centre.yaml", "PCRN-FC+ from the centre-out scan (beyond the paper)"),
 }
 
 # Table 1 of Riou et al. (ICASSP 2021): accuracy after k probes, 4 objects, held-out poses (no entry for k=1).
@@ -150,32 +153,40 @@ def summarise(runs: dict[str, list[dict]]) -> dict[str, dict]:
                 values = np.array([r[key] for r in rs])
                 std = values.std(0, ddof=1) if len(rs) > 1 else np.zeros(values.shape[1])
                 entry[key], entry[f"{key}_std"] = values.mean(0).round(4).tolist(), std.round(4).tolist()
+        if all(r.get("best_val_acc") is not None for r in rs):
+            entry["best_val_acc"] = round(float(np.mean([r["best_val_acc"] for r in rs])), 4)
         entry["train_wall_s"] = [r["train_wall_s"] for r in rs]
         entry["commits"] = sorted({r["commit"] for r in rs})
         table[row] = entry
     return table
 
 
+def best_pcrn(table: dict[str, dict]) -> str | None:
+    """The learned PCRN row with the highest mean validation accuracy after 10 probes: chosen on val, never on
+    the test episodes the table reports."""
+    pcrn = [row for row in table if ROWS[row].learned and ROWS[row].encoder == "pcrn"]
+    return max(pcrn, key=lambda row: table[row].get("best_val_acc", -1.0)) if pcrn else None
+
+
 def targets(table: dict[str, dict]) -> list[str]:
     """The issue's targets, each as a line saying met / not met and by how much."""
     lines = []
-    pcrn = [row for row in ("pcrn_fc", "pcrn_nclass", "pcrn_fc_plus") if row in table]
-    if pcrn:
-        best = max(pcrn, key=lambda row: table[row]["accuracy"][-1])
+    best = best_pcrn(table)
+    if best:
         acc = table[best]["accuracy"]
         paper_best = {k: max(col[k] for col in PAPER.values()) for k in range(2, 11)}
-        lines.append(f"- Best PCRN variant: {table[best]['label']}.")
+        lines.append(f"- Best PCRN variant (highest mean validation accuracy after 10 probes, "
+                     f"{table[best].get('best_val_acc', float('nan')):.3f}): {table[best]['label']}.")
         for k, goal in ((10, 0.95), (5, 0.85)):
             lines.append(f"- After {k} probes >= {goal}: {'met' if acc[k - 1] >= goal else 'not met'} "
                          f"({acc[k - 1]:.3f}, {acc[k - 1] - goal:+.3f}).")
         short = {k: acc[k - 1] - paper_best[k] for k in paper_best if acc[k - 1] < paper_best[k]}
         lines.append("- At every probe count at least the paper's best entry: " + (
             "met." if not short else "not met at " + ", ".join(f"{k} probes ({d:+.3f})" for k, d in short.items()) + "."))
-        for other in ("random", "line_scan"):
-            if other in table:
-                gap = acc[-1] - table[other]["accuracy"][-1]
-                lines.append(f"- Beats {table[other]['label']} by >= 0.15 after 10 probes: "
-                             f"{'met' if gap >= 0.15 else 'not met'} ({gap:+.3f}).")
+        for other in (row for row in table if not ROWS[row].learned):
+            gap = acc[-1] - table[other]["accuracy"][-1]
+            lines.append(f"- Beats {table[other]['label']} by >= 0.15 after 10 probes: "
+                         f"{'met' if gap >= 0.15 else 'not met'} ({gap:+.3f}).")
         if "lstm" in table:
             lost = [k for k in range(3, 11) if acc[k - 1] <= table["lstm"]["accuracy"][k - 1]]
             lines.append("- Beats the LSTM at every probe count from 3 on: " + (
@@ -238,7 +249,8 @@ def merge(out_dir: Path) -> dict:
     write_atomic(out_dir / "table1.json", json.dumps({"commit": merged_at,
                                                       "test_episodes": next(iter(runs.values()))[0]["test_episodes"],
                                                       "test_fingerprint": next(iter(runs.values()))[0]["test_fingerprint"],
-                                                      "rows": table, "paper": PAPER}, indent=1) + "\n")
+                                                      "best_pcrn": best_pcrn(table), "rows": table, "paper": PAPER},
+                                                     indent=1) + "\n")
     write_atomic(out_dir / "table1.md", markdown(table, runs, merged_at))
     write_atomic(out_dir / "table1.png", accuracy_plot(
         {f"{t['label']} (n={len(t['seeds'])})": t["accuracy"] for t in table.values()},

@@ -123,6 +123,17 @@ def test_ablation_policies(data, policy):
         assert rollout.requests[..., 0].std() > 0.3
 
 
+def test_centre_out_scan_covers_the_middle_nearest_first():
+    model = HapticGlance(n_probes=4, policy="line_scan", scan_span=0.5, scan_order="centre_out")
+    torch.testing.assert_close(model.line_scan_requests()[:, 0], torch.tensor([-1 / 6, 1 / 6, -0.5, 0.5]))
+    prior = HapticGlance(n_probes=4, prior="line_scan", scan_span=0.5, scan_order="centre_out")
+    torch.testing.assert_close(prior.prior_offsets, torch.atanh(0.9 * model.line_scan_requests()))
+    with pytest.raises(ValueError, match="model.scan_span=0"):
+        HapticGlance(scan_span=0.0)
+    with pytest.raises(ValueError, match="model.scan_order='middle'"):
+        HapticGlance(scan_order="middle")
+
+
 def test_eval_sets_are_fixed_and_disjoint_from_training():
     one = ProbeDataModule(mode="ideal", val_episodes=40, test_episodes=40, eval_batch_size=16, seed=1)
     two = ProbeDataModule(mode="ideal", val_episodes=40, test_episodes=40, eval_batch_size=16, seed=2)

@@ -25,10 +25,12 @@ def run(name: str, *args: str) -> subprocess.CompletedProcess:
                           text=True, env=ENV, cwd=ROOT, timeout=600)
 
 
-def fake_run(out: Path, row: str, seed: int, accuracy: list[float], fingerprint: str = "abc") -> None:
-    learned = row not in ("random", "line_scan")
+def fake_run(out: Path, row: str, seed: int, accuracy: list[float], fingerprint: str = "abc",
+             val: float = 0.5) -> None:
+    learned = row not in ("random", "line_scan", "centre_scan")
     record = {"row": row, "label": row, "config": f"configs/{row}.yaml", "seed": seed, "accuracy": accuracy,
-              "accuracy_mean_action": accuracy if learned else None, "train_wall_s": 1.0, "parallel_jobs": 1,
+              "accuracy_mean_action": accuracy if learned else None, "best_val_acc": val, "train_wall_s": 1.0,
+              "parallel_jobs": 1,
               "test_episodes": 2048, "test_fingerprint": fingerprint, "commit": "abc1234", "hardware": "cpu"}
     (out / "runs").mkdir(parents=True, exist_ok=True)
     (out / "runs" / f"{row}-seed{seed}.json").write_text(json.dumps(record))
@@ -52,6 +54,19 @@ def test_table_merge_means_stds_paper_columns_and_targets(tmp_path):
     assert "Beats random + PCRN-FC" not in text and "by >= 0.15 after 10 probes: met (+0.550)" in text
     assert "Beats the LSTM at every probe count from 3 on: not met at [3, 4, 5, 6, 7, 8, 9]." in text
     assert (tmp_path / "table1.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_best_pcrn_variant_is_chosen_on_validation_not_test(tmp_path):
+    table1 = script("reproduce_table1")
+    fake_run(tmp_path, "pcrn_fc", 0, [0.9] * 10, val=0.6)  # best on test, worse on val
+    fake_run(tmp_path, "pcrn_fc_plus", 0, [0.7] * 10, val=0.8)
+    fake_run(tmp_path, "lstm", 0, [0.95] * 10, val=0.9)  # not a PCRN variant
+    fake_run(tmp_path, "centre_scan", 0, [0.6] * 10, val=0.95)  # not learned
+    table1.merge(tmp_path)
+    assert json.loads((tmp_path / "table1.json").read_text())["best_pcrn"] == "pcrn_fc_plus"
+    text = (tmp_path / "table1.md").read_text()
+    assert "(highest mean validation accuracy after 10 probes, 0.800): PCRN-FC+ (beyond the paper)." in text
+    assert "after 10 probes: not met (+0.100)." in text  # against the centre-out scan, a fixed policy
 
 
 def test_table_merge_refuses_runs_scored_on_different_test_episodes(tmp_path):

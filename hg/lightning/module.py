@@ -96,7 +96,8 @@ class HapticGlance(pl.LightningModule):
                  gamma: float = 0.95, beta: float = 1.0, lr: float = 1e-3, point_scale: float = 2.0,
                  normalize_advantage: bool = False, policy_reads_detached: bool = False,
                  reward: Literal["correct", "log_gain"] = "correct", policy_lr_scale: float = 1.0,
-                 prior: Literal["none", "line_scan"] = "none",
+                 prior: Literal["none", "line_scan"] = "none", scan_span: float = 1.0,
+                 scan_order: Literal["sweep", "centre_out"] = "sweep",
                  point_frame: Literal["episode", "first_touch"] = "episode") -> None:
         super().__init__()
         if n_probes < 1:
@@ -124,6 +125,10 @@ class HapticGlance(pl.LightningModule):
         self.sim: ProbeSimulator | None = None
         if point_frame not in ("episode", "first_touch"):
             raise ValueError(f"model.point_frame={point_frame!r}: expected 'episode' or 'first_touch'")
+        if not 0.0 < scan_span <= 1.0:
+            raise ValueError(f"model.scan_span={scan_span}: the scanned share of the probe line must be in (0, 1]")
+        if scan_order not in ("sweep", "centre_out"):
+            raise ValueError(f"model.scan_order={scan_order!r}: expected 'sweep' or 'centre_out'")
         if prior not in ("none", "line_scan"):
             raise ValueError(f"model.prior={prior!r}: expected 'none' or 'line_scan'")
         # beyond the paper: the learned policy may start from the line scan and learn where to deviate from it
@@ -155,9 +160,13 @@ class HapticGlance(pl.LightningModule):
         return self.location.sample(state, deterministic=deterministic, generator=generator, offset=offset)[0]
 
     def line_scan_requests(self) -> Tensor:
-        """(N, 4): evenly spaced along the probe line, straight down."""
-        n = self.hparams.n_probes
-        py = torch.linspace(-1.0, 1.0, n) if n > 1 else torch.zeros(1)
+        """(N, 4): straight-down probes evenly spaced over the middle `scan_span` of the probe line, swept from
+        one end (the paper's kind of scan) or `centre_out` (nearest the centre first, alternating sides), which
+        meets objects centred near the line's middle in the first probes instead of half-way through."""
+        n, span = self.hparams.n_probes, self.hparams.scan_span
+        py = torch.linspace(-span, span, n) if n > 1 else torch.zeros(1)
+        if self.hparams.scan_order == "centre_out":
+            py = py[torch.argsort(py.abs(), stable=True)]
         return torch.stack([py, torch.zeros(n), torch.zeros(n), torch.ones(n)], 1)
 
     @torch.no_grad()
