@@ -1,31 +1,55 @@
-"""How often fixed straight-down scans touch the buried object: a cheap check of where probes are worth spending.
+"""How often probes touch the buried object: fixed straight-down scans, and the policies of trained checkpoints.
 
-A classifier can only name an object it has touched, so the touches a fixed scan collects, and how early, bound
-what the line-scan baselines and the policies started from them (`model.prior: line_scan`) can reach. For each
-scan (`model.scan_span` x `model.scan_order`, as in `HapticGlance.line_scan_requests`) on the same episodes of a
-pose split: mean touches per episode after all probes and after half of them, and the share of episodes with
-at least one touch. No training; seconds on one core.
+A classifier can only name an object it has touched, so the touches a scan collects, and how early, bound what
+the line-scan baselines and the policies started from them (`model.prior: line_scan`) can reach. For each fixed
+scan (`model.scan_span` x `model.scan_order`, as in `HapticGlance.line_scan_requests`) and for each checkpoint's
+mean-action policy (`--ckpt`), on the same episodes of a pose split: mean touches per episode after all probes
+and after half of them, the share of episodes with at least one touch, and the mean tilt of the requests from
+vertical. No training; seconds on one core.
 
     .venv/bin/python scripts/scan_coverage.py                        # 512 val episodes, ideal mode
     .venv/bin/python scripts/scan_coverage.py --mode arm --split test
+    .venv/bin/python scripts/scan_coverage.py --ckpt runs/table1/pcrn_fc_plus-seed0/checkpoints/best-step7500.ckpt
 
-Last line: JSON {"<order>-span<span>": {"touches": .., "touches_first_half": .., "any_touch": ..}, ...}.
+Last line: JSON {"<order>-span<span>" or "<checkpoint>": {"touches": .., "touches_first_half": .., "any_touch": ..,
+"tilt_deg": ..}, ...}.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import sys
+from pathlib import Path
 
 import numpy as np
+import torch
 
-from hg.lightning.module import HapticGlance
-from hg.sim import PoseRegions, ProbeSimulator, sample_episodes
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from hg.lightning.module import HapticGlance  # noqa: E402
+from hg.provenance import repo_path  # noqa: E402
+from hg.sim import PoseRegions, ProbeSimulator, sample_episodes  # noqa: E402
 
 
-def scan_touches(sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray, requests: np.ndarray) -> np.ndarray:
-    """(episodes, probes) contact flags of one fixed scan: the same request for every episode at each step."""
-    sim.reset(labels, poses, seed=0)
-    return np.stack([sim.probe(np.repeat(request[None], len(labels), 0)).points[:, 3] for request in requests], 1)
+def policy_probes(model: HapticGlance, sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(episodes, probes) contact flags and (episodes, probes, 3) unit probe directions of the model's policy
+    (mean action for a learned one) on these episodes."""
+    model.sim = sim
+    rollout = model.rollout(torch.from_numpy(labels), torch.from_numpy(poses), seed=0, deterministic=True)
+    requests = rollout.requests.double().numpy()
+    directions = sim.scene.request_to_probe(requests.reshape(-1, 4))[1]
+    return rollout.points[..., 3].numpy(), directions.reshape(*requests.shape[:2], 3)
+
+
+def coverage(touches: np.ndarray, directions: np.ndarray) -> dict[str, float]:
+    half = touches.shape[1] // 2
+    tilt = np.degrees(np.arccos(np.clip(-directions[..., 2], -1, 1)))
+    return {"touches": round(float(touches.sum(1).mean()), 3),
+            "touches_first_half": round(float(touches[:, :half].sum(1).mean()), 3),
+            "any_touch": round(float((touches.sum(1) > 0).mean()), 3),
+            "tilt_deg": round(float(tilt.mean()), 1)}
 
 
 def main() -> None:
@@ -35,26 +59,30 @@ def main() -> None:
     parser.add_argument("--mode", choices=["ideal", "arm"], default="ideal")
     parser.add_argument("--split", choices=["train", "val", "test"], default="val")
     parser.add_argument("--spans", type=float, nargs="+", default=[1.0, 0.75, 0.5])
+    parser.add_argument("--ckpt", type=Path, nargs="*", default=[], help="checkpoints whose policies to measure too")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
+    torch.set_num_threads(1)
 
+    models = {f"{order}-span{span:g}": HapticGlance(n_probes=args.n_probes, policy="line_scan", scan_span=span,
+                                                    scan_order=order)
+              for order in ("sweep", "centre_out") for span in args.spans}
+    for path in args.ckpt:
+        if not path.is_file():
+            sys.exit(f"scan_coverage: error: {path}: checkpoint not found")
+        models[repo_path(path)] = HapticGlance.load_from_checkpoint(path, map_location="cpu").eval()
     sim = ProbeSimulator("hg4", batch_size=args.episodes, mode=args.mode, seed=args.seed)
     labels, poses = sample_episodes(PoseRegions(sim.scene), args.split, args.episodes, len(sim.classes),
                                     np.random.default_rng(args.seed))
     half = args.n_probes // 2
+    print(f"{args.episodes} {args.split} episodes, {args.mode} mode, {args.n_probes} probes")
+    print(f"{'touches':>8} {f'after {half}':>9} {'any touch':>10} {'tilt (deg)':>11}  scan or checkpoint")
     results = {}
-    print(f"{args.episodes} {args.split} episodes, {args.mode} mode, {args.n_probes} straight-down probes")
-    print(f"{'scan':>22} {'touches':>8} {f'after {half}':>9} {'any touch':>10}")
-    for order in ("sweep", "centre_out"):
-        for span in args.spans:
-            model = HapticGlance(n_probes=args.n_probes, policy="line_scan", scan_span=span, scan_order=order)
-            touches = scan_touches(sim, labels, poses, model.line_scan_requests().numpy())
-            name = f"{order}-span{span:g}"
-            results[name] = {"touches": round(float(touches.sum(1).mean()), 3),
-                             "touches_first_half": round(float(touches[:, :half].sum(1).mean()), 3),
-                             "any_touch": round(float((touches.sum(1) > 0).mean()), 3)}
-            r = results[name]
-            print(f"{name:>22} {r['touches']:8.2f} {r['touches_first_half']:9.2f} {r['any_touch']:10.2f}")
+    for name, model in models.items():
+        if model.hparams.n_probes != args.n_probes:
+            sys.exit(f"scan_coverage: error: {name}: trained for {model.hparams.n_probes} probes, not {args.n_probes}")
+        r = results[name] = coverage(*policy_probes(model, sim, labels, poses))
+        print(f"{r['touches']:8.2f} {r['touches_first_half']:9.2f} {r['any_touch']:10.2f} {r['tilt_deg']:11.1f}  {name}")
     sim.close()
     print(json.dumps(results))
 

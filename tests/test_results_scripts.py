@@ -97,6 +97,16 @@ def test_table_row_trains_once_is_reused_and_feeds_the_noise_study(tmp_path):
     clean, noisy = (json.loads((tmp_path / "noise_runs" / f"ours-rate{r}-seed0.json").read_text()) for r in ("00", "50"))
     assert clean["accuracy"] == record["accuracy"][-1]  # rate 0 is the table's own test
     assert clean["checkpoint"] == noisy["checkpoint"] == record["best_checkpoint"]
+    # where the checkpoint's policy probes, beside the fixed scans, on the same episodes
+    coverage = run("scan_coverage", "--episodes", "32", "--spans", "0.5", "--ckpt", record["best_checkpoint"])
+    assert coverage.returncode == 0, coverage.stderr[-2000:]
+    figures = json.loads(coverage.stdout.strip().splitlines()[-1])
+    assert set(figures) == {"sweep-span0.5", "centre_out-span0.5", record["best_checkpoint"]}
+    sweep, centre = figures["sweep-span0.5"], figures["centre_out-span0.5"]
+    assert sweep["touches"] == centre["touches"] > 0 and sweep["tilt_deg"] == 0  # same probes, other order
+    assert 0 <= figures[record["best_checkpoint"]]["any_touch"] <= 1
+    missing = run("scan_coverage", "--ckpt", str(tmp_path / "nope.ckpt"))
+    assert missing.returncode != 0 and "nope.ckpt: checkpoint not found" in missing.stderr
 
 
 def test_noise_baseline_runs_and_merges_and_ours_needs_the_table(tmp_path):
