@@ -161,12 +161,13 @@ def merge(out: Path) -> dict:
                           "accuracy": [round(float(np.mean(v)), 4) for v in values],
                           "std": [round(float(np.std(v, ddof=1)) if len(v) > 1 else 0.0, 4) for v in values],
                           "seeds": [sorted(r["seed"] for r in by_rate[rate]) for rate in rates],
-                          "commits": sorted({r["commit"] for rs in by_rate.values() for r in rs})}
+                          "commits": sorted({r["commit"] for rs in by_rate.values() for r in rs}),
+                          "hardware": sorted({r["hardware"] for rs in by_rate.values() for r in rs})}
     merged_at = commit(paths=())
     write_atomic(out / "noise.json", json.dumps({"commit": merged_at, "test_episodes": TEST_EPISODES,
                                                  "n_points": N_POINTS, "models": summary}, indent=1) + "\n")
     write_atomic(out / "noise.png", noise_plot(summary))
-    write_atomic(out / "noise.md", noise_markdown(summary, merged_at, next(iter(next(iter(runs.values())).values()))[0]))
+    write_atomic(out / "noise.md", noise_markdown(summary, merged_at))
     return {"commit": merged_at, **{m: s["accuracy"] for m, s in summary.items()}}
 
 
@@ -186,7 +187,7 @@ def noise_plot(summary: dict) -> bytes:
     return buffer.getvalue()
 
 
-def noise_markdown(summary: dict, merged_at: str, example: dict) -> str:
+def noise_markdown(summary: dict, merged_at: str) -> str:
     rates = sorted({r for s in summary.values() for r in s["rates"]})
     lines = ["# Accuracy under noise: PointNet and DGCNN on 10 noisy points, our model after 10 noisy probes", "",
              f"Same {TEST_EPISODES} held-out test episodes as `table1.md`, mean +- std over seeds. Produced by "
@@ -198,14 +199,15 @@ def noise_markdown(summary: dict, merged_at: str, example: dict) -> str:
              "- Ours: the best PCRN variant of `table1.md` (chosen on validation accuracy), trained without noise, "
              "tested with each probe's reading corrupted with probability = rate (a touch reported as a miss at the "
              "ray's end, or a miss as a touch at a random point of the ray).", "",
-             "| model | " + " | ".join(f"{100 * r:.0f} %" for r in rates) + " | seeds | commits |",
-             "|---|" + "---:|" * len(rates) + "---|---|"]
+             "| model | " + " | ".join(f"{100 * r:.0f} %" for r in rates) + " | seeds | commits | hardware |",
+             "|---|" + "---:|" * len(rates) + "---|---|---|"]
     for entry in summary.values():
         cells = [f"{entry['accuracy'][entry['rates'].index(r)]:.3f} +- {entry['std'][entry['rates'].index(r)]:.3f}"
                  if r in entry["rates"] else "" for r in rates]
         lines.append(f"| {entry['label']} | " + " | ".join(cells) +
-                     f" | {entry['seeds'][0]} | {', '.join(f'`{c}`' for c in entry['commits'])} |")
-    lines += ["", "![accuracy vs noise](noise.png)", "", f"Hardware: {example['hardware']}.", ""]
+                     f" | {entry['seeds'][0]} | {', '.join(f'`{c}`' for c in entry['commits'])} | "
+                     f"{'; '.join(entry['hardware'])} |")
+    lines += ["", "![accuracy vs noise](noise.png)", ""]
     return "\n".join(lines)
 
 

@@ -225,14 +225,15 @@ def markdown(table: dict[str, dict], runs: dict[str, list[dict]], merged_at: str
             f"{table[r]['accuracy_mean_action'][k]:.3f} +- {table[r]['accuracy_mean_action_std'][k]:.3f}"
             for r in rows if "accuracy_mean_action" in table[r]) + " |")
     lines += ["", "## Runs", "",
-              "| row | config | seeds | training wall time per seed (s) | jobs in parallel | commits |",
-              "|---|---|---|---|---|---|"]
+              "| row | config | seeds | training wall time per seed (s) | jobs in parallel | commits | hardware |",
+              "|---|---|---|---|---|---|---|"]
     for r in rows:
         jobs = sorted({run["parallel_jobs"] for run in runs[r]})
         lines.append(f"| {table[r]['label']} | `{table[r]['config']}` | {table[r]['seeds']} | "
                      f"{', '.join(f'{s:.0f}' for s in table[r]['train_wall_s'])} | {jobs} | "
-                     f"{', '.join(f'`{c}`' for c in table[r]['commits'])} |")
-    lines += ["", f"Hardware: {first['hardware']}. With two jobs in parallel each trains on one torch thread.",
+                     f"{', '.join(f'`{c}`' for c in table[r]['commits'])} | "
+                     f"{'; '.join(sorted({run['hardware'] for run in runs[r]}))} |")
+    lines += ["", "With two jobs in parallel each trains on one torch thread.",
               "A run resumed after an interruption counts only the wall time of its last attempt "
               "(`resumed_from_step` in its JSON).", "", "## Targets (issue #4)", "", *targets(table), ""]
     return "\n".join(lines)
