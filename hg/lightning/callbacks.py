@@ -80,10 +80,9 @@ def accuracy_plot(curves: dict[str, list[float]], title: str = "Accuracy after e
     ax.set(xlabel="probes", ylabel="accuracy", ylim=(0, 1.02), title=title)
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # probe counts are whole numbers
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1))  # beside the axes: never over a curve
     buffer = io.BytesIO()
-    fig.tight_layout()
-    fig.savefig(buffer, format="png")
+    fig.savefig(buffer, format="png", bbox_inches="tight")
     plt.close(fig)
     return buffer.getvalue()
 
