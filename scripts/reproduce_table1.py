@@ -157,6 +157,7 @@ def summarise(runs: dict[str, list[dict]]) -> dict[str, dict]:
             entry["best_val_acc"] = round(float(np.mean([r["best_val_acc"] for r in rs])), 4)
         entry["train_wall_s"] = [r["train_wall_s"] for r in rs]
         entry["commits"] = sorted({r["commit"] for r in rs})
+        entry["hardware"] = sorted({r["hardware"] for r in rs})
         table[row] = entry
     return table
 
@@ -232,7 +233,7 @@ def markdown(table: dict[str, dict], runs: dict[str, list[dict]], merged_at: str
         lines.append(f"| {table[r]['label']} | `{table[r]['config']}` | {table[r]['seeds']} | "
                      f"{', '.join(f'{s:.0f}' for s in table[r]['train_wall_s'])} | {jobs} | "
                      f"{', '.join(f'`{c}`' for c in table[r]['commits'])} | "
-                     f"{'; '.join(sorted({run['hardware'] for run in runs[r]}))} |")
+                     f"{'; '.join(table[r]['hardware'])} |")
     lines += ["", "With two jobs in parallel each trains on one torch thread.",
               "A run resumed after an interruption counts only the wall time of its last attempt "
               "(`resumed_from_step` in its JSON).", "", "## Targets (issue #4)", "", *targets(table), ""]
