@@ -54,6 +54,10 @@ ROWS = {
     "pcrn_fc_plus": Row("configs/pcrn_fc_plus.yaml", "PCRN-FC+ (beyond the paper)"),
     "centre_scan": Row("configs/centre_scan.yaml", "centre-out scan + PCRN-FC (beyond the paper)", learned=False),
     "pcrn_fc_centre": Row("configs/pcrn_fc_centre.yaml", "PCRN-FC+ from the centre-out scan (beyond the paper)"),
+    "centre_scan_touchset": Row("configs/centre_scan_touchset.yaml",
+                                "centre-out scan + PCRN-FC + touch set (beyond the paper)", learned=False),
+    "pcrn_fc_centre_touchset": Row("configs/pcrn_fc_centre_touchset.yaml",
+                                   "PCRN-FC+ from the centre-out scan + touch set (beyond the paper)"),
 }
 
 # Table 1 of Riou et al. (ICASSP 2021): accuracy after k probes, 4 objects, held-out poses (no entry for k=1).

@@ -59,6 +59,20 @@ def test_gradient_routing(data):
                                                         "baseline": True}
 
 
+def test_touch_set_adds_to_the_classifier_and_learns_from_cross_entropy_only(data):
+    model = make_model(data, touch_set=True)
+    batch = first_batch(data)
+    rollout = model.rollout(batch["labels"], batch["poses"], int(batch["seed"]))
+    terms, logits = model.evaluate(rollout, batch["labels"])
+    rep = model.encoder(rollout.requests, rollout.points)
+    torch.testing.assert_close(logits, model.classifier(rep) + model.touch_set(rollout.points))
+    for loss, learns in (("loss_ce", True), ("loss_policy", False), ("loss_baseline", False)):
+        model.zero_grad()
+        terms[loss].backward(retain_graph=True)
+        assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.touch_set.parameters()) == learns
+    assert make_model(data).touch_set is None  # off by default: the paper's rows are unchanged
+
+
 def test_policy_term_uses_detached_advantage():
     logits = torch.randn(5, 3, 4, requires_grad=True)
     labels = torch.randint(4, (5,))

@@ -13,6 +13,7 @@ from hg.nets import (
     LSTMEncoder,
     NClassClassifier,
     PointNet,
+    TouchSetClassifier,
 )
 
 B, N, K = 3, 6, 2  # batch, probes, the probe after which we perturb
@@ -148,6 +149,39 @@ def test_nclass_classifier_reads_only_its_probe() -> None:
     assert torch.allclose(clf(rep[:, :3]), logits[:, :3])  # short rollouts use the first classifiers
     with pytest.raises(ValueError, match="n_probes"):
         clf(torch.randn(B, N + 1, 8))
+
+
+def touched_points(touched: list[bool]) -> torch.Tensor:
+    """(B, len(touched), 4) random X, Y, Z with the contact flag T set where `touched`."""
+    points = torch.randn(B, len(touched), 4)
+    points[..., 3] = torch.tensor(touched, dtype=torch.float32)
+    return points
+
+
+def test_touch_set_causal_and_blind_to_where_the_object_lies() -> None:
+    clf = TouchSetClassifier(4, width=16, hidden=16)
+    points = touched_points([True] * N)
+    logits = clf(points)
+    assert logits.shape == (B, N, 4)
+    later = points.clone()
+    later[:, K + 1:, :3] += 1.0
+    differs = (clf(later) - logits).abs().amax(dim=(0, 2)) > 1e-5
+    assert differs.tolist() == [k > K for k in range(N)]  # causal, and every later prefix reads its new probe
+    moved = points.clone()
+    moved[..., :3] += torch.tensor([0.3, -0.2, 0.1])  # the same touches, the object elsewhere
+    assert torch.allclose(clf(moved), logits, atol=1e-5)
+
+
+def test_touch_set_ignores_missed_probes() -> None:
+    """A miss reports no surface point: its coordinates must not matter, and a prefix of misses is finite."""
+    clf = TouchSetClassifier(4, width=16, hidden=16)
+    points = touched_points([False, True, False, True, True, False])
+    changed = points.clone()
+    changed[:, [0, 2, 5], :3] += 5.0
+    logits = clf(points)
+    assert torch.isfinite(logits).all()
+    assert torch.allclose(clf(changed), logits)
+    assert not torch.allclose(logits[:, 0], logits[:, 1])  # the first touch changes the prediction
 
 
 @pytest.mark.parametrize("make", [lambda: PointNet(4), lambda: DGCNN(4, k=9)], ids=["PointNet", "DGCNN"])

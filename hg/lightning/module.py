@@ -10,7 +10,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from hg.nets import PCRN, Baseline, FCClassifier, LinearClassifier, LocationNetwork, LSTMEncoder, NClassClassifier
+from hg.nets import (PCRN, Baseline, FCClassifier, LinearClassifier, LocationNetwork, LSTMEncoder, NClassClassifier,
+                     TouchSetClassifier)
 from hg.sim import ProbeSimulator
 from hg.sim.robot import achieved
 
@@ -98,7 +99,7 @@ class HapticGlance(pl.LightningModule):
                  reward: Literal["correct", "log_gain"] = "correct", policy_lr_scale: float = 1.0,
                  prior: Literal["none", "line_scan"] = "none", scan_span: float = 1.0,
                  scan_order: Literal["sweep", "centre_out"] = "sweep",
-                 point_frame: Literal["episode", "first_touch"] = "episode") -> None:
+                 point_frame: Literal["episode", "first_touch"] = "episode", touch_set: bool = False) -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -120,6 +121,8 @@ class HapticGlance(pl.LightningModule):
         if policy not in ("learned", "random", "line_scan"):
             raise ValueError(f"model.policy={policy!r}: expected 'learned', 'random' or 'line_scan'")
         self.classifier = classifiers[classifier]()
+        # beyond the paper: the logits of a translation-invariant classifier of the touched points are added
+        self.touch_set = TouchSetClassifier(n_classes, hidden=hidden) if touch_set else None
         self.location = LocationNetwork(dim, hidden=128, std_floor=std_floor, std_max=std_max)
         self.baseline = Baseline(dim)
         self.sim: ProbeSimulator | None = None
@@ -207,6 +210,8 @@ class HapticGlance(pl.LightningModule):
         """Forward pass over a finished rollout: the loss terms and the logits (B, N, C)."""
         rep = self.encoder(rollout.requests, self.encoder_points(rollout.points))
         logits = self.classifier(rep)
+        if self.touch_set is not None:
+            logits = logits + self.touch_set(rollout.points)
         log_pi = baseline = None
         if self.hparams.policy == "learned":
             # s_k from which request k was drawn; beyond the paper, the policy may read it without training the encoder

@@ -6,7 +6,7 @@ from hg.nets.lstm import LSTMEncoder
 from hg.nets.mlp import cumulative_mean, mlp
 from hg.nets.p2carb import P2CARB
 from hg.nets.pcrn import PCRN
-from hg.nets.pointcloud import DGCNN, PointNet
+from hg.nets.pointcloud import DGCNN, PointNet, TouchSetClassifier
 
 __all__ = [
     "DGCNN",
@@ -19,6 +19,7 @@ __all__ = [
     "LocationNetwork",
     "NClassClassifier",
     "PointNet",
+    "TouchSetClassifier",
     "cumulative_mean",
     "mlp",
 ]

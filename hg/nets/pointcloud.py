@@ -1,7 +1,10 @@
-"""Point cloud classifiers for the paper's noise comparison (Fig. 4b): PointNet and DGCNN on 10 sparse points."""
+"""Point cloud classifiers: PointNet and DGCNN on 10 sparse points for the paper's noise comparison (Fig. 4b), and
+the touch-set classifier that reads the touched points of a rollout."""
 
 import torch
 from torch import Tensor, nn
+
+from hg.nets.mlp import mlp
 
 
 def _bn_act(layer: nn.Module, width: int, act: nn.Module, bn: type[nn.Module] = nn.BatchNorm1d) -> nn.Sequential:
@@ -73,3 +76,33 @@ class DGCNN(nn.Module):
             layers.append(x)
         x = self.fuse(torch.cat(layers, 1))
         return self.head(torch.cat([x.amax(-1), x.mean(-1)], 1))
+
+
+class TouchSetClassifier(nn.Module):
+    """Beyond the paper: a PointNet over the points touched so far, taken relative to their mean. Where the
+    object lies is no class cue, its shape is; PCRN reads points in the episode frame and learns this
+    invariance slowly. logits[:, k] reads probes 1..k+1 only (causal), like every classifier of the rollout.
+
+    Shared MLP on each touched point -> max pool over the touched points of the prefix -> (pooled, share of
+    probes that touched) -> MLP -> logits. A prefix without a touch pools to zeros.
+    """
+
+    def __init__(self, n_classes: int, width: int = 128, hidden: int = 256, scale: float = 5.0) -> None:
+        super().__init__()
+        self.scale = scale  # relative coordinates of a ~0.2 m object (x point_scale) to about unit size
+        self.shared = mlp([3, width // 2, width, 2 * width])
+        self.head = mlp([2 * width + 1, hidden, n_classes], last_act=False)
+
+    def forward(self, points: Tensor) -> Tensor:
+        """points (B, N, 4): X, Y, Z and the contact flag T -> logits (B, N, n_classes)."""
+        n = points.shape[1]
+        xyz, touched = points[..., :3], (points[..., 3] > 0.5).to(points.dtype)
+        prefix = torch.ones(n, n, dtype=points.dtype, device=points.device).tril()  # [k, j]: probe j <= k
+        mask = prefix * touched[:, None, :]  # (B, K, J): probe j touched and is in prefix k
+        count = mask.sum(-1, keepdim=True)  # (B, K, 1)
+        centre = (mask @ xyz) / count.clamp(min=1)  # (B, K, 3)
+        relative = (xyz[:, None] - centre[:, :, None]) * self.scale  # (B, K, J, 3)
+        features = self.shared(relative).masked_fill(mask[..., None] < 0.5, float("-inf")).amax(2)  # (B, K, F)
+        features = torch.where(count > 0, features, torch.zeros_like(features))
+        share = count / torch.arange(1, n + 1, dtype=points.dtype, device=points.device)[:, None]
+        return self.head(torch.cat([features, share], -1))
