@@ -5,11 +5,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
 from hg.lightning import HapticGlance, ProbeDataModule, discounted_returns, hybrid_loss
 from hg.lightning.module import relative_to_first_touch
+from hg.sim.scene import Scene
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = str(ROOT / "configs" / "tiny.yaml")
@@ -142,6 +144,15 @@ def test_centre_out_scan_covers_the_middle_nearest_first():
     torch.testing.assert_close(model.line_scan_requests()[:, 0], torch.tensor([-1 / 6, 1 / 6, -0.5, 0.5]))
     prior = HapticGlance(n_probes=4, prior="line_scan", scan_span=0.5, scan_order="centre_out")
     torch.testing.assert_close(prior.prior_offsets, torch.atanh(0.9 * model.line_scan_requests()))
+    fan = HapticGlance(n_probes=4, policy="line_scan", scan_span=0.5, scan_order="centre_out", scan_lean=0.4)
+    torch.testing.assert_close(fan.line_scan_requests()[:, [0, 1, 3]],
+                               torch.tensor([[-1 / 6, 0.0, 1.0], [1 / 6, 1.0, 0.6], [-0.5, -1.0, 0.6], [0.5, 0.0, 1.0]]))
+    points, directions = Scene().request_to_probe(fan.line_scan_requests().double().numpy())
+    tilt = np.degrees(np.arccos(-directions[:, 2]))
+    np.testing.assert_allclose(tilt, [0.0, 11.31, 11.31, 0.0], atol=0.01)  # atan(tan(45 deg) * 0.4 / 2)
+    assert directions[1, 0] > 0 > directions[2, 0]  # the fan leans to both sides of the line
+    with pytest.raises(ValueError, match="model.scan_lean=3"):
+        HapticGlance(scan_lean=3.0)
     with pytest.raises(ValueError, match="model.scan_span=0"):
         HapticGlance(scan_span=0.0)
     with pytest.raises(ValueError, match="model.scan_order='middle'"):

@@ -128,7 +128,11 @@ def test_probe_maps_callback_maps_the_scored_rollouts(tmp_path):
     maps = ProbeMaps(render_episodes=True, frame_width=160, frame_height=120)
     trainer = pl.Trainer(logger=False, callbacks=[maps], default_root_dir=tmp_path, accelerator="cpu",
                          enable_progress_bar=False, enable_model_summary=False)
+    rollouts_made = []
+    roll = model.rollout
+    model.rollout = lambda *args, **kwargs: rollouts_made.append(1) or roll(*args, **kwargs)
     trainer.test(model, datamodule=data, verbose=False)
+    assert len(rollouts_made) == 2  # one batch: the stochastic and the mean-action rollout, none made again
     rollouts = Rollouts.concat(maps.parts)
     scored = [trainer.callback_metrics[f"test/acc@{k}"].item() for k in (1, 2, 3)]
     np.testing.assert_allclose(rollouts.accuracy(), scored, atol=1e-6)

@@ -98,7 +98,7 @@ class HapticGlance(pl.LightningModule):
                  normalize_advantage: bool = False, policy_reads_detached: bool = False,
                  reward: Literal["correct", "log_gain"] = "correct", policy_lr_scale: float = 1.0,
                  prior: Literal["none", "line_scan"] = "none", scan_span: float = 1.0,
-                 scan_order: Literal["sweep", "centre_out"] = "sweep",
+                 scan_order: Literal["sweep", "centre_out"] = "sweep", scan_lean: float = 0.0,
                  point_frame: Literal["episode", "first_touch"] = "episode", touch_set: bool = False) -> None:
         super().__init__()
         if n_probes < 1:
@@ -126,10 +126,14 @@ class HapticGlance(pl.LightningModule):
         self.location = LocationNetwork(dim, hidden=128, std_floor=std_floor, std_max=std_max)
         self.baseline = Baseline(dim)
         self.sim: ProbeSimulator | None = None
+        self.last_eval: dict[bool, tuple[Rollout, Tensor]] = {}  # deterministic? -> the last eval batch's rollout
+        # and logits, which the test-end maps read instead of rolling the batch out again
         if point_frame not in ("episode", "first_touch"):
             raise ValueError(f"model.point_frame={point_frame!r}: expected 'episode' or 'first_touch'")
         if not 0.0 < scan_span <= 1.0:
             raise ValueError(f"model.scan_span={scan_span}: the scanned share of the probe line must be in (0, 1]")
+        if not 0.0 <= scan_lean <= 2.0:
+            raise ValueError(f"model.scan_lean={scan_lean}: must be in [0, 2] (1 - uz of the leaning probes)")
         if scan_order not in ("sweep", "centre_out"):
             raise ValueError(f"model.scan_order={scan_order!r}: expected 'sweep' or 'centre_out'")
         if prior not in ("none", "line_scan"):
@@ -163,14 +167,19 @@ class HapticGlance(pl.LightningModule):
         return self.location.sample(state, deterministic=deterministic, generator=generator, offset=offset)[0]
 
     def line_scan_requests(self) -> Tensor:
-        """(N, 4): straight-down probes evenly spaced over the middle `scan_span` of the probe line, swept from
-        one end (the paper's kind of scan) or `centre_out` (nearest the centre first, alternating sides), which
-        meets objects centred near the line's middle in the first probes instead of half-way through."""
-        n, span = self.hparams.n_probes, self.hparams.scan_span
+        """(N, 4): probes evenly spaced over the middle `scan_span` of the probe line, swept from one end (the
+        paper's kind of scan) or `centre_out` (nearest the centre first, alternating sides), which meets objects
+        centred near the line's middle in the first probes instead of half-way through. Straight down, or with
+        `scan_lean` fanned across the line (tan(tilt) = tan(max tilt) * scan_lean / 2: 11 degrees for 0.4)."""
+        n, span, lean = self.hparams.n_probes, self.hparams.scan_span, self.hparams.scan_lean
         py = torch.linspace(-span, span, n) if n > 1 else torch.zeros(1)
         if self.hparams.scan_order == "centre_out":
             py = py[torch.argsort(py.abs(), stable=True)]
-        return torch.stack([py, torch.zeros(n), torch.zeros(n), torch.ones(n)], 1)
+        # scan_lean > 0 fans the scan across the line: of every three probes one goes straight down, one leans
+        # towards +x and one towards -x, reaching objects lying off the line (ux = +-1, uz = 1 - scan_lean)
+        ux = torch.tensor([0.0, 1.0, -1.0]).repeat(n)[:n] if lean > 0 else torch.zeros(n)
+        uz = torch.where(ux == 0, torch.ones(n), torch.full((n,), 1.0 - lean))
+        return torch.stack([py, ux, torch.zeros(n), uz], 1)
 
     @torch.no_grad()
     def rollout(self, labels: Tensor, poses: Tensor, seed: int, deterministic: bool = False) -> Rollout:
@@ -247,6 +256,7 @@ class HapticGlance(pl.LightningModule):
         for suffix, deterministic in variants:
             rollout = self.rollout(labels, batch["poses"], seed, deterministic=deterministic)
             _, logits = self.evaluate(rollout, labels)
+            self.last_eval[deterministic] = (rollout, logits.detach())
             correct = (logits.argmax(-1) == labels[:, None]).float().mean(0)
             metrics = {f"{stage}/acc{suffix}@{k + 1}": correct[k] for k in range(len(correct))}
             metrics[f"{stage}/acc{suffix}"] = correct[-1]

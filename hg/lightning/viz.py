@@ -62,11 +62,16 @@ class Rollouts:
 
 
 @torch.no_grad()
-def roll_out(module: pl.LightningModule, batch: dict[str, torch.Tensor], deterministic: bool = False) -> Rollouts:
-    """The rollout the eval step makes of this batch (same seed, same policy), and the prediction after each probe."""
+def roll_out(module: pl.LightningModule, batch: dict[str, torch.Tensor], deterministic: bool = False,
+             done: tuple | None = None) -> Rollouts:
+    """The rollout the eval step makes of this batch (same seed, same policy), and the prediction after each probe;
+    `done` = (rollout, logits) of that eval step, when it has already been made."""
     labels = batch["labels"].to(module.device)
-    rollout = module.rollout(labels, batch["poses"], int(batch["seed"]), deterministic=deterministic)
-    _, logits = module.evaluate(rollout, labels)
+    if done is None:
+        rollout = module.rollout(labels, batch["poses"], int(batch["seed"]), deterministic=deterministic)
+        _, logits = module.evaluate(rollout, labels)
+    else:
+        rollout, logits = done
     points = rollout.points.detach().cpu().double().numpy().copy()
     points[..., :3] /= module.hparams.point_scale
     return Rollouts(labels.cpu().numpy(), batch["poses"].cpu().double().numpy(),
@@ -218,8 +223,9 @@ class ProbeMaps(pl.Callback):
     """At test end: probe_heatmaps.png and confusion_matrices.png in the run directory (and as wandb images), and
     optionally episode renders (one test episode per class) in its `episodes/` folder.
 
-    Each test batch is rolled out again from its seed, which reproduces the rollout the test step scored. Only
-    this process's share of the test set is mapped (the whole set on one device).
+    It maps the rollouts the test step scored (kept by the module), or rolls a batch out again from its seed,
+    which reproduces them, when the test step made none of this kind. Only this process's share of the test
+    set is mapped (the whole set on one device).
     """
 
     def __init__(self, mean_action: bool = False, render_episodes: bool = False, frame_width: int = 480,
@@ -233,7 +239,8 @@ class ProbeMaps(pl.Callback):
 
     def on_test_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs, batch: dict,
                           batch_idx: int, dataloader_idx: int = 0) -> None:
-        self.parts.append(roll_out(pl_module, batch, deterministic=self.mean_action))
+        done = getattr(pl_module, "last_eval", {}).get(self.mean_action)
+        self.parts.append(roll_out(pl_module, batch, deterministic=self.mean_action, done=done))
 
     @rank_zero_only
     def on_test_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
