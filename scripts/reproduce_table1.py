@@ -58,6 +58,10 @@ ROWS = {
                                 "centre-out scan + PCRN-FC + touch set (beyond the paper)", learned=False),
     "pcrn_fc_centre_touchset": Row("configs/pcrn_fc_centre_touchset.yaml",
                                    "PCRN-FC+ from the centre-out scan + touch set (beyond the paper)"),
+    "fan_scan_touchset": Row("configs/fan_scan_touchset.yaml", "fanned scan + PCRN-FC + touch set (beyond the paper)",
+                             learned=False),
+    "pcrn_fc_fan_touchset": Row("configs/pcrn_fc_fan_touchset.yaml",
+                                "PCRN-FC+ from the fanned scan + touch set (beyond the paper)"),
 }
 
 # Table 1 of Riou et al. (ICASSP 2021): accuracy after k probes, 4 objects, held-out poses (no entry for k=1).

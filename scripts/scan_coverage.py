@@ -1,17 +1,18 @@
-"""How often probes touch the buried object: fixed straight-down scans, and the policies of trained checkpoints.
+"""How often probes touch the buried object: fixed scans, and the policies of trained checkpoints.
 
 A classifier can only name an object it has touched, so the touches a scan collects, and how early, bound what
 the line-scan baselines and the policies started from them (`model.prior: line_scan`) can reach. For each fixed
-scan (`model.scan_span` x `model.scan_order`, as in `HapticGlance.line_scan_requests`) and for each checkpoint's
-mean-action policy (`--ckpt`), on the same episodes of a pose split: mean touches per episode after all probes
-and after half of them, the share of episodes with at least one touch, and the mean tilt of the requests from
-vertical. No training; seconds on one core.
+scan (`model.scan_span` x `model.scan_order` x `model.scan_lean`, as in `HapticGlance.line_scan_requests`) and
+for each checkpoint's mean-action policy (`--ckpt`), on the same episodes of a pose split: mean touches per
+episode after all probes and after half of them, the share of episodes with at least one touch, and the mean
+tilt of the requests from vertical. No training; seconds on one core.
 
     .venv/bin/python scripts/scan_coverage.py                        # 512 val episodes, ideal mode
     .venv/bin/python scripts/scan_coverage.py --mode arm --split test
+    .venv/bin/python scripts/scan_coverage.py --spans 0.5 --leans 0 0.4 --episodes 2048   # the fanned scan
     .venv/bin/python scripts/scan_coverage.py --ckpt runs/table1/pcrn_fc_plus-seed0/checkpoints/best-step7500.ckpt
 
-Last line: JSON {"<order>-span<span>" or "<checkpoint>": {"touches": .., "touches_first_half": .., "any_touch": ..,
+Last line: JSON {"<order>-span<span>[-lean<lean>]" or "<checkpoint>": {"touches": .., "touches_first_half": .., "any_touch": ..,
 "tilt_deg": ..}, ...}.
 """
 from __future__ import annotations
@@ -59,14 +60,15 @@ def main() -> None:
     parser.add_argument("--mode", choices=["ideal", "arm"], default="ideal")
     parser.add_argument("--split", choices=["train", "val", "test"], default="val")
     parser.add_argument("--spans", type=float, nargs="+", default=[1.0, 0.75, 0.5])
+    parser.add_argument("--leans", type=float, nargs="+", default=[0.0], help="model.scan_lean values (0: straight down)")
     parser.add_argument("--ckpt", type=Path, nargs="*", default=[], help="checkpoints whose policies to measure too")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     torch.set_num_threads(1)
 
-    models = {f"{order}-span{span:g}": HapticGlance(n_probes=args.n_probes, policy="line_scan", scan_span=span,
-                                                    scan_order=order)
-              for order in ("sweep", "centre_out") for span in args.spans}
+    models = {f"{order}-span{span:g}" + (f"-lean{lean:g}" if lean else ""):
+              HapticGlance(n_probes=args.n_probes, policy="line_scan", scan_span=span, scan_order=order, scan_lean=lean)
+              for order in ("sweep", "centre_out") for span in args.spans for lean in args.leans}
     for path in args.ckpt:
         if not path.is_file():
             sys.exit(f"scan_coverage: error: {path}: checkpoint not found")

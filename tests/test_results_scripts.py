@@ -98,12 +98,16 @@ def test_table_row_trains_once_is_reused_and_feeds_the_noise_study(tmp_path):
     assert clean["accuracy"] == record["accuracy"][-1]  # rate 0 is the table's own test
     assert clean["checkpoint"] == noisy["checkpoint"] == record["best_checkpoint"]
     # where the checkpoint's policy probes, beside the fixed scans, on the same episodes
-    coverage = run("scan_coverage", "--episodes", "32", "--spans", "0.5", "--ckpt", record["best_checkpoint"])
+    coverage = run("scan_coverage", "--episodes", "32", "--spans", "0.5", "--leans", "0", "0.4",
+                   "--ckpt", record["best_checkpoint"])
     assert coverage.returncode == 0, coverage.stderr[-2000:]
     figures = json.loads(coverage.stdout.strip().splitlines()[-1])
-    assert set(figures) == {"sweep-span0.5", "centre_out-span0.5", record["best_checkpoint"]}
+    assert set(figures) == {"sweep-span0.5", "centre_out-span0.5", "sweep-span0.5-lean0.4",
+                            "centre_out-span0.5-lean0.4", record["best_checkpoint"]}
     sweep, centre = figures["sweep-span0.5"], figures["centre_out-span0.5"]
     assert sweep["touches"] == centre["touches"] > 0 and sweep["tilt_deg"] == 0  # same probes, other order
+    fan = figures["centre_out-span0.5-lean0.4"]
+    assert fan["tilt_deg"] == pytest.approx(11.31 * 6 / 10, abs=0.1)  # 6 of 10 probes lean 11.3 degrees
     assert 0 <= figures[record["best_checkpoint"]]["any_touch"] <= 1
     missing = run("scan_coverage", "--ckpt", str(tmp_path / "nope.ckpt"))
     assert missing.returncode != 0 and "nope.ckpt: checkpoint not found" in missing.stderr
