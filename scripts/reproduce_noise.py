@@ -9,8 +9,9 @@ after 10 probes under the simulator's missed / false-contact noise, at noise rat
   without noise), tested on those episodes with SensorNoise(miss_prob = rate, false_contact_prob = rate): each
   probe's reading is corrupted with probability `rate`.
 
-Each (model, rate, seed) leaves a JSON in <out>/noise_runs/ and is not recomputed; the merge writes
-noise.{md,json,png}. Last line printed: JSON of the mean accuracies per model and rate, and the commit.
+Each (model, rate, seed) leaves a JSON in <out>/noise_runs/ and is not recomputed (ours: per table row, and
+again when that row's checkpoint changed); the merge writes noise.{md,json,png}, with ours from the row that
+table1.json names best now. Last line printed: JSON of the mean accuracies per model and rate, and the commit.
 
     .venv/bin/python scripts/reproduce_noise.py                 # needs the table1 runs' checkpoints for 'ours'
     .venv/bin/python scripts/reproduce_noise.py --models pointnet dgcnn --seeds 0
@@ -147,9 +148,13 @@ def test_under_noise(checkpoint: Path, rate: float, test_episodes: int = TEST_EP
 
 # -- merge ------------------------------------------------------------------------------------------------
 def merge(out: Path) -> dict:
+    table_path = out / "table1.json"
+    best = json.loads(table_path.read_text()).get("best_pcrn") if table_path.is_file() else None
     runs: dict[str, dict[float, list[dict]]] = {}
     for path in sorted((out / "noise_runs").glob("*.json")):
         run = json.loads(path.read_text())
+        if run["model"] == "ours" and run["row"] != best:  # a row that is no longer the table's best
+            continue
         runs.setdefault(run["model"], {}).setdefault(run["rate"], []).append(run)
     if not runs:
         raise SystemExit(f"{out / 'noise_runs'}: no finished runs to merge")
@@ -228,13 +233,15 @@ def main() -> None:
             row, checkpoints, test_episodes = best_pcrn_row(args.out)
             jobs += [("ours", r, seed) for r in args.rates for seed in sorted(checkpoints)]
         for model, rate, seed in jobs:
-            path = args.out / "noise_runs" / f"{model}-rate{round(rate * 100):02d}-seed{seed}.json"
-            if path.is_file():
+            name = f"ours-{row}" if model == "ours" else model
+            path = args.out / "noise_runs" / f"{name}-rate{round(rate * 100):02d}-seed{seed}.json"
+            if path.is_file() and (model != "ours" or
+                                   json.loads(path.read_text())["checkpoint"] == repo_path(checkpoints[seed])):
                 continue
             code_commit = commit()
             if model == "ours":
                 result = test_under_noise(checkpoints[seed], rate, test_episodes)
-                result["label"] = f"ours: {row} after 10 probes"
+                result["label"], result["row"] = f"ours: {row} after 10 probes", row
             else:
                 result = train_point_cloud_net(model, rate, seed, args.steps, args.batch_size)
                 result["label"] = NETS[model][0]

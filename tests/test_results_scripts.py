@@ -94,9 +94,15 @@ def test_table_row_trains_once_is_reused_and_feeds_the_noise_study(tmp_path):
     # our model under sensor noise: the table's checkpoint, its test episodes, each reading corrupted
     ours = run("reproduce_noise", "--models", "ours", "--rates", "0", "0.5", "--out", str(tmp_path))
     assert ours.returncode == 0, ours.stderr[-2000:]
-    clean, noisy = (json.loads((tmp_path / "noise_runs" / f"ours-rate{r}-seed0.json").read_text()) for r in ("00", "50"))
+    clean, noisy = (json.loads((tmp_path / "noise_runs" / f"ours-pcrn_fc-rate{r}-seed0.json").read_text())
+                    for r in ("00", "50"))
     assert clean["accuracy"] == record["accuracy"][-1]  # rate 0 is the table's own test
     assert clean["checkpoint"] == noisy["checkpoint"] == record["best_checkpoint"]
+    # results of a row that is no longer the best stay on disk but out of the merge
+    stale = {**clean, "row": "pcrn_nclass", "accuracy": 0.99}
+    (tmp_path / "noise_runs" / "ours-pcrn_nclass-rate00-seed0.json").write_text(json.dumps(stale))
+    again = run("reproduce_noise", "--models", "ours", "--rates", "0", "0.5", "--out", str(tmp_path))
+    assert again.returncode == 0 and json.loads(again.stdout.strip().splitlines()[-1])["ours"][0] == clean["accuracy"]
     # where the checkpoint's policy probes, beside the fixed scans, on the same episodes
     coverage = run("scan_coverage", "--episodes", "32", "--spans", "0.5", "--leans", "0", "0.4",
                    "--ckpt", record["best_checkpoint"])
