@@ -58,6 +58,9 @@ ROWS = {
                                 "centre-out scan + PCRN-FC + touch set (beyond the paper)", learned=False),
     "pcrn_fc_centre_touchset": Row("configs/pcrn_fc_centre_touchset.yaml",
                                    "PCRN-FC+ from the centre-out scan + touch set (beyond the paper)"),
+    "pcrn_fc_centre_touchset_warmup": Row("configs/pcrn_fc_centre_touchset_warmup.yaml",
+                                          "PCRN-FC+ from the centre-out scan + touch set, policy from step 4000 "
+                                          "(beyond the paper)"),
     "fan_scan_touchset": Row("configs/fan_scan_touchset.yaml", "fanned scan + PCRN-FC + touch set (beyond the paper)",
                              learned=False),
     "pcrn_fc_fan_touchset": Row("configs/pcrn_fc_fan_touchset.yaml",

@@ -1,4 +1,5 @@
 """The hybrid update rule and the Lightning module on real rollouts in the simulator (ideal mode, tiny nets)."""
+import copy
 import csv
 import os
 import subprocess
@@ -7,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import pytorch_lightning as pl
 import torch
 
 from hg.lightning import HapticGlance, ProbeDataModule, discounted_returns, hybrid_loss
@@ -73,6 +75,33 @@ def test_touch_set_adds_to_the_classifier_and_learns_from_cross_entropy_only(dat
         terms[loss].backward(retain_graph=True)
         assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.touch_set.parameters()) == learns
     assert make_model(data).touch_set is None  # off by default: the paper's rows are unchanged
+
+
+def test_policy_warmup_trains_the_classifier_on_the_scan_and_leaves_the_policy_alone(data):
+    def fit(warmup_steps: int) -> tuple[HapticGlance, HapticGlance]:
+        model = make_model(data, prior="line_scan", policy_warmup_steps=warmup_steps)
+        before = copy.deepcopy(model)
+        trainer = pl.Trainer(max_steps=2, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                             enable_model_summary=False, limit_val_batches=0, accelerator="cpu")
+        trainer.fit(model, datamodule=data)
+        return before, model
+
+    def changed(a, b) -> bool:
+        return any(not torch.equal(p, q) for p, q in zip(a.parameters(), b.parameters()))
+
+    before, warming = fit(2)
+    assert not changed(before.location, warming.location) and changed(before.classifier, warming.classifier)
+    before, learning = fit(0)
+    assert changed(before.location, learning.location)
+    batch = first_batch(data)
+    warming.sim = data.make_simulator()  # fit's teardown closed the model's own
+    scan = warming.rollout(batch["labels"], batch["poses"], 0, follow_scan=True)
+    torch.testing.assert_close(scan.requests, warming.line_scan_requests().expand_as(scan.requests))
+    terms, _ = warming.evaluate(scan, batch["labels"], learn_policy=False)
+    assert "loss_policy" not in terms and torch.equal(terms["loss"], terms["loss_ce"])
+    warming.sim.close()
+    with pytest.raises(ValueError, match="model.policy_warmup_steps=-1"):
+        HapticGlance(policy_warmup_steps=-1)
 
 
 def test_policy_term_uses_detached_advantage():

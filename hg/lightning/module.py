@@ -99,10 +99,13 @@ class HapticGlance(pl.LightningModule):
                  reward: Literal["correct", "log_gain"] = "correct", policy_lr_scale: float = 1.0,
                  prior: Literal["none", "line_scan"] = "none", scan_span: float = 1.0,
                  scan_order: Literal["sweep", "centre_out"] = "sweep", scan_lean: float = 0.0,
-                 point_frame: Literal["episode", "first_touch"] = "episode", touch_set: bool = False) -> None:
+                 point_frame: Literal["episode", "first_touch"] = "episode", touch_set: bool = False,
+                 policy_warmup_steps: int = 0) -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
+        if policy_warmup_steps < 0:
+            raise ValueError(f"model.policy_warmup_steps={policy_warmup_steps}: must be >= 0")
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"model.gamma={gamma}: the discount must be in [0, 1]")
         self.save_hyperparameters()
@@ -154,13 +157,13 @@ class HapticGlance(pl.LightningModule):
 
     # -- rollout -------------------------------------------------------------------------------------
     def next_actions(self, k: int, batch: int, rep_sum: Tensor | None, deterministic: bool,
-                     generator: torch.Generator) -> Tensor:
+                     generator: torch.Generator, follow_scan: bool = False) -> Tensor:
         """Request k + 1 of every episode (k may be 0); a learned policy reads the sum of the representations
-        after probes 1..k, which the rollout keeps running."""
+        after probes 1..k, which the rollout keeps running. follow_scan: the fixed scan, whatever the policy."""
         policy = self.hparams.policy
         if policy == "random":
             return torch.rand(batch, 4, generator=generator) * 2 - 1
-        if policy == "line_scan":
+        if policy == "line_scan" or follow_scan:
             return self.line_scan_requests()[k].expand(batch, 4).clone()
         state = self.location.state(rep_sum, k, batch_size=batch)
         offset = None if self.prior_offsets is None else self.prior_offsets[k]
@@ -182,8 +185,10 @@ class HapticGlance(pl.LightningModule):
         return torch.stack([py, ux, torch.zeros(n), uz], 1)
 
     @torch.no_grad()
-    def rollout(self, labels: Tensor, poses: Tensor, seed: int, deterministic: bool = False) -> Rollout:
-        """Probe B episodes N times with the current policy; the batch seed drives sampling and sensor noise."""
+    def rollout(self, labels: Tensor, poses: Tensor, seed: int, deterministic: bool = False,
+                follow_scan: bool = False) -> Rollout:
+        """Probe B episodes N times with the current policy (or the fixed scan: follow_scan); the batch seed drives
+        sampling and sensor noise."""
         sim, n = self.sim, self.hparams.n_probes
         batch = len(labels)
         sim.reset(labels.cpu().numpy(), poses.cpu().numpy(), seed=seed)
@@ -192,7 +197,7 @@ class HapticGlance(pl.LightningModule):
         reached = torch.ones(batch, n, dtype=torch.bool)
         memory = rep_sum = None  # the encoder's memory of the probes so far, and the sum of its outputs
         for k in range(n):
-            action = self.next_actions(k, batch, rep_sum, deterministic, generator).cpu()
+            action = self.next_actions(k, batch, rep_sum, deterministic, generator, follow_scan).cpu()
             if not torch.isfinite(action).all():
                 raise FloatingPointError(f"non-finite probe request from the '{self.hparams.policy}' policy at probe "
                                          f"{k + 1}, global step {self.global_step}")
@@ -202,7 +207,7 @@ class HapticGlance(pl.LightningModule):
             points[:, k, :3] *= self.hparams.point_scale  # the policy must see what evaluate() will see
             if sim.arm is not None:
                 reached[:, k] = torch.from_numpy(achieved(result.pose_error))
-            if self.hparams.policy == "learned" and k + 1 < n:  # each probe is encoded once (evaluate() redoes
+            if self.hparams.policy == "learned" and not follow_scan and k + 1 < n:  # each probe is encoded once (evaluate() redoes
                 # the whole sequence with gradients); the last one is never read by the policy
                 rep, memory = self.encoder.step(action.clamp(-1, 1).to(self.device),
                                                 self.encoder_points(points[:, :k + 1])[:, k].to(self.device), memory)
@@ -215,14 +220,15 @@ class HapticGlance(pl.LightningModule):
         return relative_to_first_touch(points) if self.hparams.point_frame == "first_touch" else points
 
     # -- loss ----------------------------------------------------------------------------------------
-    def evaluate(self, rollout: Rollout, labels: Tensor) -> tuple[dict[str, Tensor], Tensor]:
-        """Forward pass over a finished rollout: the loss terms and the logits (B, N, C)."""
+    def evaluate(self, rollout: Rollout, labels: Tensor, learn_policy: bool = True) -> tuple[dict[str, Tensor], Tensor]:
+        """Forward pass over a finished rollout: the loss terms (without the policy's when not learn_policy) and
+        the logits (B, N, C)."""
         rep = self.encoder(rollout.requests, self.encoder_points(rollout.points))
         logits = self.classifier(rep)
         if self.touch_set is not None:
             logits = logits + self.touch_set(rollout.points)
         log_pi = baseline = None
-        if self.hparams.policy == "learned":
+        if self.hparams.policy == "learned" and learn_policy:
             # s_k from which request k was drawn; beyond the paper, the policy may read it without training the encoder
             states = self.location.states(rep.detach() if self.hparams.policy_reads_detached else rep)
             log_pi = self.location.log_prob(states, rollout.actions, self.prior_offsets)
@@ -237,8 +243,11 @@ class HapticGlance(pl.LightningModule):
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         labels = batch["labels"]
-        rollout = self.rollout(labels, batch["poses"], int(batch["seed"]))
-        terms, _ = self.evaluate(rollout, labels)
+        # beyond the paper: a learned policy may first leave the probing to the fixed scan (its prior), untrained,
+        # so that the classifier learns on steady probes before the policy starts to move them
+        warming_up = self.hparams.policy == "learned" and self.global_step < self.hparams.policy_warmup_steps
+        rollout = self.rollout(labels, batch["poses"], int(batch["seed"]), follow_scan=warming_up)
+        terms, _ = self.evaluate(rollout, labels, learn_policy=not warming_up)
         if not torch.isfinite(terms["loss"]):
             raise FloatingPointError(f"non-finite loss {terms['loss'].item()} at global step {self.global_step} "
                                      f"(terms: { {k: round(v.item(), 4) for k, v in terms.items()} })")
