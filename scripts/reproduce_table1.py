@@ -63,8 +63,6 @@ ROWS = {
                                           "(beyond the paper)"),
     "fan_scan_touchset": Row("configs/fan_scan_touchset.yaml", "fanned scan + PCRN-FC + touch set (beyond the paper)",
                              learned=False),
-    "pcrn_fc_fan_touchset": Row("configs/pcrn_fc_fan_touchset.yaml",
-                                "PCRN-FC+ from the fanned scan + touch set (beyond the paper)"),
 }
 
 # Table 1 of Riou et al. (ICASSP 2021): accuracy after k probes, 4 objects, held-out poses (no entry for k=1).
