@@ -73,10 +73,11 @@ def accuracy_plot(curves: dict[str, list[float]], title: str = "Accuracy after e
                   reference: dict[str, dict[int, float]] | None = None) -> bytes:
     """PNG bytes of accuracy-vs-probes curves; `reference` curves ({probe: accuracy}, e.g. the paper's) dashed."""
     fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
-    for name, values in curves.items():
-        ax.plot(range(1, len(values) + 1), values, marker="o", label=name)
-    for name, points in (reference or {}).items():
-        ax.plot(list(points), list(points.values()), "--", label=name)
+    colours, markers = plt.get_cmap("tab20").colors, "os^Dv"  # a dozen rows must not share a colour
+    for i, (name, values) in enumerate(curves.items()):
+        ax.plot(range(1, len(values) + 1), values, marker=markers[i % len(markers)], color=colours[i % 20], label=name)
+    for i, (name, points) in enumerate((reference or {}).items(), start=len(curves)):
+        ax.plot(list(points), list(points.values()), "--", color=colours[i % 20], label=name)
     ax.set(xlabel="probes", ylabel="accuracy", ylim=(0, 1.02), title=title)
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # probe counts are whole numbers
     ax.grid(alpha=0.3)
