@@ -12,8 +12,8 @@ tilt of the requests from vertical. No training; seconds on one core.
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --leans 0 0.4 --episodes 2048   # the fanned scan
     .venv/bin/python scripts/scan_coverage.py --ckpt runs/table1/pcrn_fc_plus-seed0/checkpoints/best-step7500.ckpt
 
-Last line: JSON {"<order>-span<span>[-lean<lean>]" or "<checkpoint>": {"touches": .., "touches_first_half": .., "any_touch": ..,
-"tilt_deg": ..}, ...}.
+Last line: JSON {"<order>-span<span>[-lean<lean>]" or "<checkpoint>": {"touches": .., "touches_first_half": ..,
+"any_touch": .., "tilt_deg": ..}, ...}.
 """
 from __future__ import annotations
 
@@ -60,7 +60,8 @@ def main() -> None:
     parser.add_argument("--mode", choices=["ideal", "arm"], default="ideal")
     parser.add_argument("--split", choices=["train", "val", "test"], default="val")
     parser.add_argument("--spans", type=float, nargs="+", default=[1.0, 0.75, 0.5])
-    parser.add_argument("--leans", type=float, nargs="+", default=[0.0], help="model.scan_lean values (0: straight down)")
+    parser.add_argument("--leans", type=float, nargs="+", default=[0.0],
+                        help="model.scan_lean values (0: straight down)")
     parser.add_argument("--ckpt", type=Path, nargs="*", default=[], help="checkpoints whose policies to measure too")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()

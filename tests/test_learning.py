@@ -174,8 +174,8 @@ def test_centre_out_scan_covers_the_middle_nearest_first():
     prior = HapticGlance(n_probes=4, prior="line_scan", scan_span=0.5, scan_order="centre_out")
     torch.testing.assert_close(prior.prior_offsets, torch.atanh(0.9 * model.line_scan_requests()))
     fan = HapticGlance(n_probes=4, policy="line_scan", scan_span=0.5, scan_order="centre_out", scan_lean=0.4)
-    torch.testing.assert_close(fan.line_scan_requests()[:, [0, 1, 3]],
-                               torch.tensor([[-1 / 6, 0.0, 1.0], [1 / 6, 1.0, 0.6], [-0.5, -1.0, 0.6], [0.5, 0.0, 1.0]]))
+    expected = torch.tensor([[-1 / 6, 0.0, 1.0], [1 / 6, 1.0, 0.6], [-0.5, -1.0, 0.6], [0.5, 0.0, 1.0]])
+    torch.testing.assert_close(fan.line_scan_requests()[:, [0, 1, 3]], expected)
     points, directions = Scene().request_to_probe(fan.line_scan_requests().double().numpy())
     tilt = np.degrees(np.arccos(-directions[:, 2]))
     np.testing.assert_allclose(tilt, [0.0, 11.31, 11.31, 0.0], atol=0.01)  # atan(tan(45 deg) * 0.4 / 2)

@@ -129,8 +129,6 @@ class HapticGlance(pl.LightningModule):
         self.location = LocationNetwork(dim, hidden=128, std_floor=std_floor, std_max=std_max)
         self.baseline = Baseline(dim)
         self.sim: ProbeSimulator | None = None
-        self.last_eval: dict[bool, tuple[Rollout, Tensor]] = {}  # deterministic? -> the last eval batch's rollout
-        # and logits, which the test-end maps read instead of rolling the batch out again
         if point_frame not in ("episode", "first_touch"):
             raise ValueError(f"model.point_frame={point_frame!r}: expected 'episode' or 'first_touch'")
         if not 0.0 < scan_span <= 1.0:
@@ -207,8 +205,8 @@ class HapticGlance(pl.LightningModule):
             points[:, k, :3] *= self.hparams.point_scale  # the policy must see what evaluate() will see
             if sim.arm is not None:
                 reached[:, k] = torch.from_numpy(achieved(result.pose_error))
-            if self.hparams.policy == "learned" and not follow_scan and k + 1 < n:  # each probe is encoded once (evaluate() redoes
-                # the whole sequence with gradients); the last one is never read by the policy
+            if self.hparams.policy == "learned" and not follow_scan and k + 1 < n:  # each probe is encoded once
+                # (evaluate() redoes the whole sequence with gradients); the last one is never read by the policy
                 rep, memory = self.encoder.step(action.clamp(-1, 1).to(self.device),
                                                 self.encoder_points(points[:, :k + 1])[:, k].to(self.device), memory)
                 rep_sum = rep if rep_sum is None else rep_sum + rep
@@ -257,26 +255,28 @@ class HapticGlance(pl.LightningModule):
         self.log("train/reach_rate", rollout.reached.float().mean(), batch_size=size)
         return terms["loss"]
 
-    def _eval_step(self, batch: dict[str, Tensor], stage: str) -> None:
+    def _eval_step(self, batch: dict[str, Tensor], stage: str) -> dict[bool, tuple[Rollout, Tensor]]:
         """Single-rollout accuracy after each probe: the stochastic policy, and for a learned policy also the
-        mean-action policy, each labelled; never an average over several rollouts."""
-        labels, seed = batch["labels"], int(batch["seed"])
+        mean-action policy, each labelled; never an average over several rollouts. Returns {deterministic:
+        (rollout, logits)}, which callbacks (ProbeMaps) get as the step's outputs instead of rolling out again."""
+        labels, seed, scored = batch["labels"], int(batch["seed"]), {}
         variants = [("", False)] + ([("_mean_action", True)] if self.hparams.policy == "learned" else [])
         for suffix, deterministic in variants:
             rollout = self.rollout(labels, batch["poses"], seed, deterministic=deterministic)
             _, logits = self.evaluate(rollout, labels)
-            self.last_eval[deterministic] = (rollout, logits.detach())
+            scored[deterministic] = (rollout, logits.detach())
             correct = (logits.argmax(-1) == labels[:, None]).float().mean(0)
             metrics = {f"{stage}/acc{suffix}@{k + 1}": correct[k] for k in range(len(correct))}
             metrics[f"{stage}/acc{suffix}"] = correct[-1]
             metrics[f"{stage}/touch_rate{suffix}"] = rollout.points[..., 3].mean()
             self.log_dict(metrics, batch_size=len(labels), sync_dist=True)
+        return scored
 
-    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self._eval_step(batch, "val")
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> dict[bool, tuple[Rollout, Tensor]]:
+        return self._eval_step(batch, "val")
 
-    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        self._eval_step(batch, "test")
+    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> dict[bool, tuple[Rollout, Tensor]]:
+        return self._eval_step(batch, "test")
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
         """Adam; beyond the paper, the location network may learn on a slower time scale than the classifier."""

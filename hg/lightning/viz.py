@@ -223,8 +223,8 @@ class ProbeMaps(pl.Callback):
     """At test end: probe_heatmaps.png and confusion_matrices.png in the run directory (and as wandb images), and
     optionally episode renders (one test episode per class) in its `episodes/` folder.
 
-    It maps the rollouts the test step scored (kept by the module), or rolls a batch out again from its seed,
-    which reproduces them, when the test step made none of this kind. Only this process's share of the test
+    It maps the rollouts the test step scored (its outputs), or rolls a batch out again from its seed, which
+    reproduces them, when the test step made none of this kind. Only this process's share of the test
     set is mapped (the whole set on one device).
     """
 
@@ -239,7 +239,7 @@ class ProbeMaps(pl.Callback):
 
     def on_test_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs, batch: dict,
                           batch_idx: int, dataloader_idx: int = 0) -> None:
-        done = getattr(pl_module, "last_eval", {}).get(self.mean_action)
+        done = outputs.get(self.mean_action) if isinstance(outputs, dict) else None
         self.parts.append(roll_out(pl_module, batch, deterministic=self.mean_action, done=done))
 
     @rank_zero_only
