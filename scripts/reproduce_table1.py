@@ -63,6 +63,11 @@ ROWS = {
                                           "(beyond the paper)"),
     "fan_scan_touchset": Row("configs/fan_scan_touchset.yaml", "fanned scan + PCRN-FC + touch set (beyond the paper)",
                              learned=False),
+    "follow_scan_touchset": Row("configs/follow_scan_touchset.yaml",
+                                "centre-out scan following the touches + PCRN-FC + touch set (beyond the paper)",
+                                learned=False),
+    "pcrn_fc_follow_touchset": Row("configs/pcrn_fc_follow_touchset.yaml",
+                                   "PCRN-FC+ from the touch-following scan + touch set (beyond the paper)"),
 }
 
 # Table 1 of Riou et al. (ICASSP 2021): accuracy after k probes, 4 objects, held-out poses (no entry for k=1).

@@ -2,7 +2,8 @@
 
 A classifier can only name an object it has touched, so the touches a scan collects, and how early, bound what
 the line-scan baselines and the policies started from them (`model.prior: line_scan`) can reach. For each fixed
-scan (`model.scan_span` x `model.scan_order` x `model.scan_lean`, as in `HapticGlance.line_scan_requests`) and
+scan (`model.scan_span` x `model.scan_order` x `model.scan_lean` x `model.scan_follow`, as in
+`HapticGlance.scan_requests`) and
 for each checkpoint's mean-action policy (`--ckpt`), on the same episodes of a pose split: mean touches per
 episode after all probes and after half of them, the share of episodes with at least one touch, and the mean
 tilt of the requests from vertical. No training; seconds on one core.
@@ -10,9 +11,10 @@ tilt of the requests from vertical. No training; seconds on one core.
     .venv/bin/python scripts/scan_coverage.py                        # 512 val episodes, ideal mode
     .venv/bin/python scripts/scan_coverage.py --mode arm --split test
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --leans 0 0.4 --episodes 2048   # the fanned scan
+    .venv/bin/python scripts/scan_coverage.py --spans 0.5 --follows 0 0.05     # the scan following the touches
     .venv/bin/python scripts/scan_coverage.py --ckpt runs/table1/pcrn_fc_plus-seed0/checkpoints/best-step7500.ckpt
 
-Last line: JSON {"<order>-span<span>[-lean<lean>]" or "<checkpoint>": {"touches": .., "touches_first_half": ..,
+Last line: JSON {"<order>-span<span>[-lean<lean>][-follow<follow>]" or "<checkpoint>": {"touches": .., "touches_first_half": ..,
 "any_touch": .., "tilt_deg": ..}, ...}.
 """
 from __future__ import annotations
@@ -62,14 +64,18 @@ def main() -> None:
     parser.add_argument("--spans", type=float, nargs="+", default=[1.0, 0.75, 0.5])
     parser.add_argument("--leans", type=float, nargs="+", default=[0.0],
                         help="model.scan_lean values (0: straight down)")
+    parser.add_argument("--follows", type=float, nargs="+", default=[0.0],
+                        help="model.scan_follow values (0: the scan ignores its touches)")
     parser.add_argument("--ckpt", type=Path, nargs="*", default=[], help="checkpoints whose policies to measure too")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     torch.set_num_threads(1)
 
-    models = {f"{order}-span{span:g}" + (f"-lean{lean:g}" if lean else ""):
-              HapticGlance(n_probes=args.n_probes, policy="line_scan", scan_span=span, scan_order=order, scan_lean=lean)
-              for order in ("sweep", "centre_out") for span in args.spans for lean in args.leans}
+    models = {f"{order}-span{span:g}" + (f"-lean{lean:g}" if lean else "") + (f"-follow{follow:g}" if follow else ""):
+              HapticGlance(n_probes=args.n_probes, policy="line_scan", scan_span=span, scan_order=order, scan_lean=lean,
+                           scan_follow=follow)
+              for order in ("sweep", "centre_out") for span in args.spans for lean in args.leans
+              for follow in args.follows}
     for path in args.ckpt:
         if not path.is_file():
             sys.exit(f"scan_coverage: error: {path}: checkpoint not found")

@@ -172,7 +172,9 @@ def test_centre_out_scan_covers_the_middle_nearest_first():
     model = HapticGlance(n_probes=4, policy="line_scan", scan_span=0.5, scan_order="centre_out")
     torch.testing.assert_close(model.line_scan_requests()[:, 0], torch.tensor([-1 / 6, 1 / 6, -0.5, 0.5]))
     prior = HapticGlance(n_probes=4, prior="line_scan", scan_span=0.5, scan_order="centre_out")
-    torch.testing.assert_close(prior.prior_offsets, torch.atanh(0.9 * model.line_scan_requests()))
+    points = torch.rand(3, 4, 4)  # without scan_follow the scan ignores what it touched
+    expected = torch.atanh(0.9 * model.line_scan_requests()).expand(3, -1, -1)
+    torch.testing.assert_close(prior.prior_offsets(points), expected)
     fan = HapticGlance(n_probes=4, policy="line_scan", scan_span=0.5, scan_order="centre_out", scan_lean=0.4)
     expected = torch.tensor([[-1 / 6, 0.0, 1.0], [1 / 6, 1.0, 0.6], [-0.5, -1.0, 0.6], [0.5, 0.0, 1.0]])
     torch.testing.assert_close(fan.line_scan_requests()[:, [0, 1, 3]], expected)
@@ -186,6 +188,32 @@ def test_centre_out_scan_covers_the_middle_nearest_first():
         HapticGlance(scan_span=0.0)
     with pytest.raises(ValueError, match="model.scan_order='middle'"):
         HapticGlance(scan_order="middle")
+
+
+def test_follow_scan_probes_around_the_touches_and_touches_more(data):
+    model = make_model(data, policy="line_scan", scan_span=0.5, scan_order="centre_out", scan_follow=0.1)
+    lo, hi = model.sim.scene.probe_y
+    points = torch.zeros(2, 4, 4)  # episode 0 touches at probe 2 (y = 0.1 m) and 3 (y = 0.2 m); episode 1 never
+    points[0, 1], points[0, 2] = torch.tensor([0.0, 0.1, -0.2, 1.0]), torch.tensor([0.0, 0.2, -0.2, 1.0])
+    points[..., :3] *= model.hparams.point_scale
+    requests = model.scan_requests(points)
+    to_py = lambda y: (y - lo) / (0.5 * (hi - lo)) - 1  # noqa: E731
+    # request 3 follows the first touch one step up; request 4 goes one step down from the mean of both touches
+    torch.testing.assert_close(requests[0, :, 0], torch.tensor([-1 / 6, 1 / 6, to_py(0.1) + 0.1, to_py(0.15) - 0.1]))
+    torch.testing.assert_close(requests[1], model.line_scan_requests())  # nothing touched: the plain scan
+    causal = points.clone()
+    causal[:, 3] = torch.tensor([0.0, 0.3, -0.2, 1.0])  # what the last probe returns cannot move any request
+    torch.testing.assert_close(model.scan_requests(causal), requests)
+    # on real ray casts, following the first touch collects more touches than walking on past the object
+    batch = first_batch(data)
+    touches = {}
+    for follow in (0.0, 0.05):
+        model.hparams.scan_follow = follow
+        touches[follow] = model.rollout(batch["labels"], batch["poses"], 0).points[..., 3].sum()
+    assert touches[0.05] > touches[0.0] > 0
+    model.sim.close()
+    with pytest.raises(ValueError, match="model.scan_follow=2"):
+        HapticGlance(scan_follow=2.0)
 
 
 def test_eval_sets_are_fixed_and_disjoint_from_training():

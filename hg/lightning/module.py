@@ -98,7 +98,7 @@ class HapticGlance(pl.LightningModule):
                  normalize_advantage: bool = False, policy_reads_detached: bool = False,
                  reward: Literal["correct", "log_gain"] = "correct", policy_lr_scale: float = 1.0,
                  prior: Literal["none", "line_scan"] = "none", scan_span: float = 1.0,
-                 scan_order: Literal["sweep", "centre_out"] = "sweep", scan_lean: float = 0.0,
+                 scan_order: Literal["sweep", "centre_out"] = "sweep", scan_lean: float = 0.0, scan_follow: float = 0.0,
                  point_frame: Literal["episode", "first_touch"] = "episode", touch_set: bool = False,
                  policy_warmup_steps: int = 0) -> None:
         super().__init__()
@@ -135,13 +135,13 @@ class HapticGlance(pl.LightningModule):
             raise ValueError(f"model.scan_span={scan_span}: the scanned share of the probe line must be in (0, 1]")
         if not 0.0 <= scan_lean <= 2.0:
             raise ValueError(f"model.scan_lean={scan_lean}: must be in [0, 2] (1 - uz of the leaning probes)")
+        if not 0.0 <= scan_follow <= 1.0:
+            raise ValueError(f"model.scan_follow={scan_follow}: must be in [0, 1] (a step along the probe line, "
+                             "in request units; 0: no following)")
         if scan_order not in ("sweep", "centre_out"):
             raise ValueError(f"model.scan_order={scan_order!r}: expected 'sweep' or 'centre_out'")
         if prior not in ("none", "line_scan"):
             raise ValueError(f"model.prior={prior!r}: expected 'none' or 'line_scan'")
-        # beyond the paper: the learned policy may start from the line scan and learn where to deviate from it
-        self.register_buffer("prior_offsets", torch.atanh(0.9 * self.line_scan_requests()) if prior == "line_scan"
-                             else None, persistent=False)
 
     # -- simulator -----------------------------------------------------------------------------------
     def setup(self, stage: str) -> None:
@@ -154,18 +154,48 @@ class HapticGlance(pl.LightningModule):
             self.sim = None
 
     # -- rollout -------------------------------------------------------------------------------------
-    def next_actions(self, k: int, batch: int, rep_sum: Tensor | None, deterministic: bool,
+    def next_actions(self, k: int, points: Tensor, rep_sum: Tensor | None, deterministic: bool,
                      generator: torch.Generator, follow_scan: bool = False) -> Tensor:
-        """Request k + 1 of every episode (k may be 0); a learned policy reads the sum of the representations
-        after probes 1..k, which the rollout keeps running. follow_scan: the fixed scan, whatever the policy."""
-        policy = self.hparams.policy
+        """Request k + 1 of every episode (k may be 0), given the points (B, N, 4) of the rollout so far (only
+        points[:, :k] are read); a learned policy reads the sum of the representations after probes 1..k, which
+        the rollout keeps running. follow_scan: the fixed scan, whatever the policy."""
+        policy, batch = self.hparams.policy, len(points)
         if policy == "random":
             return torch.rand(batch, 4, generator=generator) * 2 - 1
         if policy == "line_scan" or follow_scan:
-            return self.line_scan_requests()[k].expand(batch, 4).clone()
+            return self.scan_requests(points)[:, k]
         state = self.location.state(rep_sum, k, batch_size=batch)
-        offset = None if self.prior_offsets is None else self.prior_offsets[k]
+        offsets = self.prior_offsets(points)
+        offset = None if offsets is None else offsets[:, k].to(state.device)
         return self.location.sample(state, deterministic=deterministic, generator=generator, offset=offset)[0]
+
+    def prior_offsets(self, points: Tensor) -> Tensor | None:
+        """(B, N, 4) pre-tanh means of the learned policy's prior, or None without one. Beyond the paper: the
+        policy may start from the fixed scan (`prior: line_scan`) and learn where to deviate from it."""
+        return torch.atanh(0.9 * self.scan_requests(points)) if self.hparams.prior == "line_scan" else None
+
+    def scan_requests(self, points: Tensor) -> Tensor:
+        """(B, N, 4): the fixed scan's requests, given the points (B, N, 4) its probes returned; request k reads
+        only points[:, :k]. Without `scan_follow` it is line_scan_requests() in every episode. With it, the scan
+        adapts: from the probe after an episode's first touch on, it probes around the mean y of the touches so
+        far, `scan_follow` request units apart, alternating sides (+1, -1, +2, -2, ... steps), because a scan
+        that walks on past the object wastes its probes on bare soil."""
+        scan = self.line_scan_requests().to(points.device).expand(len(points), -1, -1).clone()
+        step = self.hparams.scan_follow
+        if step == 0:
+            return scan
+        n = scan.shape[1]
+        touched = (points[..., 3] > 0.5).float()
+        before = torch.cumsum(touched, 1) - touched  # touches among probes 1..k-1, for request k
+        y_sum = torch.cumsum(touched * points[..., 1], 1) - touched * points[..., 1]
+        lo, hi = self.sim.scene.probe_y
+        mean_py = (y_sum / before.clamp(min=1) / self.hparams.point_scale - lo) / (0.5 * (hi - lo)) - 1
+        first = torch.where(touched.any(1), touched.argmax(1), torch.full_like(touched[:, 0], n, dtype=torch.long))
+        j = torch.arange(n, device=points.device) - first[:, None] - 1  # follow-up probe index, -1 at the first touch
+        sides = torch.where(j % 2 == 0, j // 2 + 1, -(j // 2 + 1)).float()  # +1, -1, +2, -2, ...
+        follow = before > 0
+        scan[..., 0] = torch.where(follow, (mean_py + step * sides).clamp(-1, 1), scan[..., 0])
+        return scan
 
     def line_scan_requests(self) -> Tensor:
         """(N, 4): probes evenly spaced over the middle `scan_span` of the probe line, swept from one end (the
@@ -195,7 +225,7 @@ class HapticGlance(pl.LightningModule):
         reached = torch.ones(batch, n, dtype=torch.bool)
         memory = rep_sum = None  # the encoder's memory of the probes so far, and the sum of its outputs
         for k in range(n):
-            action = self.next_actions(k, batch, rep_sum, deterministic, generator, follow_scan).cpu()
+            action = self.next_actions(k, points, rep_sum, deterministic, generator, follow_scan).cpu()
             if not torch.isfinite(action).all():
                 raise FloatingPointError(f"non-finite probe request from the '{self.hparams.policy}' policy at probe "
                                          f"{k + 1}, global step {self.global_step}")
@@ -229,13 +259,14 @@ class HapticGlance(pl.LightningModule):
         if self.hparams.policy == "learned" and learn_policy:
             # s_k from which request k was drawn; beyond the paper, the policy may read it without training the encoder
             states = self.location.states(rep.detach() if self.hparams.policy_reads_detached else rep)
-            log_pi = self.location.log_prob(states, rollout.actions, self.prior_offsets)
+            offsets = self.prior_offsets(rollout.points)
+            log_pi = self.location.log_prob(states, rollout.actions, offsets)
             baseline = self.baseline(states.detach())
         h = self.hparams
         terms = hybrid_loss(logits, labels, log_pi, baseline, h.gamma, h.beta, h.normalize_advantage, h.reward)
         if log_pi is not None:
             with torch.no_grad():  # too large a std is the usual cause of poor accuracy: watch it
-                sigma = self.location.distribution(states, rollout.actions, self.prior_offsets)[1].mean((0, 1))
+                sigma = self.location.distribution(states, rollout.actions, offsets)[1].mean((0, 1))
             terms.update({f"std_{c}": sigma[i] for i, c in enumerate(COMPONENTS)})
         return terms, logits
 
