@@ -66,6 +66,9 @@ ROWS = {
     "follow_scan_touchset": Row("configs/follow_scan_touchset.yaml",
                                 "centre-out scan following the touches + PCRN-FC + touch set (beyond the paper)",
                                 learned=False),
+    "fan_follow_scan_touchset": Row("configs/fan_follow_scan_touchset.yaml",
+                                    "fanned scan following the touches + PCRN-FC + touch set (beyond the paper)",
+                                    learned=False),
     "pcrn_fc_follow_touchset": Row("configs/pcrn_fc_follow_touchset.yaml",
                                    "PCRN-FC+ from the touch-following scan + touch set (beyond the paper)"),
 }

@@ -204,6 +204,9 @@ def test_follow_scan_probes_around_the_touches_and_touches_more(data):
     causal = points.clone()
     causal[:, 3] = torch.tensor([0.0, 0.3, -0.2, 1.0])  # what the last probe returns cannot move any request
     torch.testing.assert_close(model.scan_requests(causal), requests)
+    model.hparams.scan_lean = 0.4  # the fan: probe 2 leans to +x, probe 3 to -x; follow-ups keep probe 2's lean
+    torch.testing.assert_close(model.scan_requests(points)[0, 2:, 1:], torch.tensor([[1.0, 0.0, 0.6]]).expand(2, 3))
+    model.hparams.scan_lean = 0.0
     # on real ray casts, following the first touch collects more touches than walking on past the object
     batch = first_batch(data)
     touches = {}

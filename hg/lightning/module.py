@@ -178,8 +178,9 @@ class HapticGlance(pl.LightningModule):
         """(B, N, 4): the fixed scan's requests, given the points (B, N, 4) its probes returned; request k reads
         only points[:, :k]. Without `scan_follow` it is line_scan_requests() in every episode. With it, the scan
         adapts: from the probe after an episode's first touch on, it probes around the mean y of the touches so
-        far, `scan_follow` request units apart, alternating sides (+1, -1, +2, -2, ... steps), because a scan
-        that walks on past the object wastes its probes on bare soil."""
+        far, `scan_follow` request units apart, alternating sides (+1, -1, +2, -2, ... steps), in the direction
+        of the probe that touched first, because a scan that walks on past the object wastes its probes on bare
+        soil."""
         scan = self.line_scan_requests().to(points.device).expand(len(points), -1, -1).clone()
         step = self.hparams.scan_follow
         if step == 0:
@@ -193,9 +194,12 @@ class HapticGlance(pl.LightningModule):
         first = torch.where(touched.any(1), touched.argmax(1), torch.full_like(touched[:, 0], n, dtype=torch.long))
         j = torch.arange(n, device=points.device) - first[:, None] - 1  # follow-up probe index, -1 at the first touch
         sides = torch.where(j % 2 == 0, j // 2 + 1, -(j // 2 + 1)).float()  # +1, -1, +2, -2, ...
-        follow = before > 0
-        scan[..., 0] = torch.where(follow, (mean_py + step * sides).clamp(-1, 1), scan[..., 0])
-        return scan
+        follow = (before > 0)[..., None]
+        # a follow-up probe keeps the direction of the probe that first touched: if a leaning probe found the object
+        # off the line, a straight one at the same y would miss it
+        direction = scan.gather(1, first.clamp(max=n - 1)[:, None, None].expand(-1, n, 4))
+        followed = torch.cat([(mean_py + step * sides).clamp(-1, 1)[..., None], direction[..., 1:]], -1)
+        return torch.where(follow, followed, scan)
 
     def line_scan_requests(self) -> Tensor:
         """(N, 4): probes evenly spaced over the middle `scan_span` of the probe line, swept from one end (the
