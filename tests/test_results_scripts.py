@@ -105,11 +105,13 @@ def test_table_row_trains_once_is_reused_and_feeds_the_noise_study(tmp_path):
     assert again.returncode == 0 and json.loads(again.stdout.strip().splitlines()[-1])["ours"][0] == clean["accuracy"]
     # where the checkpoint's policy probes, beside the fixed scans, on the same episodes
     coverage = run("scan_coverage", "--episodes", "32", "--spans", "0.5", "--leans", "0", "0.4",
-                   "--ckpt", record["best_checkpoint"])
+                   "--follows", "0", "0.05", "--ckpt", record["best_checkpoint"])
     assert coverage.returncode == 0, coverage.stderr[-2000:]
     figures = json.loads(coverage.stdout.strip().splitlines()[-1])
-    assert set(figures) == {"sweep-span0.5", "centre_out-span0.5", "sweep-span0.5-lean0.4",
-                            "centre_out-span0.5-lean0.4", record["best_checkpoint"]}
+    scans = {f"{order}-span0.5{lean}{follow}" for order in ("sweep", "centre_out") for lean in ("", "-lean0.4")
+             for follow in ("", "-follow0.05")}
+    assert set(figures) == scans | {record["best_checkpoint"]}
+    assert figures["centre_out-span0.5-follow0.05"]["touches"] > figures["centre_out-span0.5"]["touches"]
     sweep, centre = figures["sweep-span0.5"], figures["centre_out-span0.5"]
     assert sweep["touches"] == centre["touches"] > 0 and sweep["tilt_deg"] == 0  # same probes, other order
     fan = figures["centre_out-span0.5-lean0.4"]
