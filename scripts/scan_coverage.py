@@ -6,7 +6,9 @@ scan (`model.scan_span` x `model.scan_order` x `model.scan_lean` x `model.scan_f
 `HapticGlance.scan_requests`) and
 for each checkpoint's mean-action policy (`--ckpt`), on the same episodes of a pose split: mean touches per
 episode after all probes and after half of them, the share of episodes with at least one touch, and the mean
-tilt of the requests from vertical. No training; seconds on one core.
+tilt of the requests from vertical. For a checkpoint also its accuracy after all probes on those rollouts,
+split by how many probes touched (a classifier can only be as good as what it touched). No training; seconds
+on one core.
 
     .venv/bin/python scripts/scan_coverage.py                        # 512 val episodes, ideal mode
     .venv/bin/python scripts/scan_coverage.py --mode arm --split test
@@ -14,8 +16,9 @@ tilt of the requests from vertical. No training; seconds on one core.
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --follows 0 0.05     # the scan following the touches
     .venv/bin/python scripts/scan_coverage.py --ckpt runs/table1/pcrn_fc_plus-seed0/checkpoints/best-step7500.ckpt
 
-Last line: JSON {"<order>-span<span>[-lean<lean>][-follow<follow>]" or "<checkpoint>": {"touches": .., "touches_first_half": ..,
-"any_touch": .., "tilt_deg": ..}, ...}.
+Last line: JSON {"<order>-span<span>[-lean<lean>][-follow<follow>]" or "<checkpoint>": {"touches": ..,
+"touches_first_half": .., "any_touch": .., "tilt_deg": ..[, "accuracy": .., "by_touches": {"0-1": {"share": ..,
+"accuracy": ..}, ...}]}, ...}.
 """
 from __future__ import annotations
 
@@ -35,15 +38,34 @@ from hg.provenance import repo_path  # noqa: E402
 from hg.sim import PoseRegions, ProbeSimulator, sample_episodes  # noqa: E402
 
 
+TOUCH_BINS = ((0, 1), (2, 3), (4, 5), (6, 10**6))  # touches per episode, inclusive
+
+
 def policy_probes(model: HapticGlance, sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray]:
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(episodes, probes) contact flags and (episodes, probes, 3) unit probe directions of the model's policy
-    (mean action for a learned one) on these episodes."""
+    (mean action for a learned one) on these episodes, and (episodes,) whether its prediction after the last
+    probe is right (meaningful for a trained checkpoint only)."""
     model.sim = sim
-    rollout = model.rollout(torch.from_numpy(labels), torch.from_numpy(poses), seed=0, deterministic=True)
+    labels_t = torch.from_numpy(labels)
+    rollout = model.rollout(labels_t, torch.from_numpy(poses), seed=0, deterministic=True)
+    with torch.no_grad():
+        correct = (model.evaluate(rollout, labels_t)[1][:, -1].argmax(-1) == labels_t).numpy()
     requests = rollout.requests.double().numpy()
     directions = sim.scene.request_to_probe(requests.reshape(-1, 4))[1]
-    return rollout.points[..., 3].numpy(), directions.reshape(*requests.shape[:2], 3)
+    return rollout.points[..., 3].numpy(), directions.reshape(*requests.shape[:2], 3), correct
+
+
+def accuracy_by_touches(touches: np.ndarray, correct: np.ndarray) -> dict:
+    """Accuracy after all probes, overall and per bin of touches per episode (None for an empty bin)."""
+    counts = touches.sum(1)
+    bins = {}
+    for lo, hi in TOUCH_BINS:
+        inside = (counts >= lo) & (counts <= hi)
+        name = f"{lo}-{hi}" if hi < 10**6 else f"{lo}+"
+        bins[name] = {"share": round(float(inside.mean()), 3),
+                      "accuracy": round(float(correct[inside].mean()), 3) if inside.any() else None}
+    return {"accuracy": round(float(correct.mean()), 3), "by_touches": bins}
 
 
 def coverage(touches: np.ndarray, directions: np.ndarray) -> dict[str, float]:
@@ -71,11 +93,12 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
 
-    models = {f"{order}-span{span:g}" + (f"-lean{lean:g}" if lean else "") + (f"-follow{follow:g}" if follow else ""):
-              HapticGlance(n_probes=args.n_probes, policy="line_scan", scan_span=span, scan_order=order, scan_lean=lean,
-                           scan_follow=follow)
-              for order in ("sweep", "centre_out") for span in args.spans for lean in args.leans
-              for follow in args.follows}
+    scans = {f"{order}-span{span:g}" + (f"-lean{lean:g}" if lean else "") + (f"-follow{follow:g}" if follow else ""):
+             HapticGlance(n_probes=args.n_probes, policy="line_scan", scan_span=span, scan_order=order, scan_lean=lean,
+                          scan_follow=follow)
+             for order in ("sweep", "centre_out") for span in args.spans for lean in args.leans
+             for follow in args.follows}
+    models = dict(scans)
     for path in args.ckpt:
         if not path.is_file():
             sys.exit(f"scan_coverage: error: {path}: checkpoint not found")
@@ -90,8 +113,18 @@ def main() -> None:
     for name, model in models.items():
         if model.hparams.n_probes != args.n_probes:
             sys.exit(f"scan_coverage: error: {name}: trained for {model.hparams.n_probes} probes, not {args.n_probes}")
-        r = results[name] = coverage(*policy_probes(model, sim, labels, poses))
-        print(f"{r['touches']:8.2f} {r['touches_first_half']:9.2f} {r['any_touch']:10.2f} {r['tilt_deg']:11.1f}  {name}")
+        touches, directions, correct = policy_probes(model, sim, labels, poses)
+        r = results[name] = coverage(touches, directions)
+        print(f"{r['touches']:8.2f} {r['touches_first_half']:9.2f} {r['any_touch']:10.2f} {r['tilt_deg']:11.1f}  "
+              f"{name}")
+        if name not in scans:  # a fixed scan built here has an untrained classifier: no accuracy
+            r.update(accuracy_by_touches(touches, correct))
+    for name in (name for name in results if name not in scans):
+        r = results[name]
+        split = ", ".join(f"{b} touches: {v['share']:.2f} of episodes, accuracy "
+                          + ("-" if v["accuracy"] is None else f"{v['accuracy']:.3f}")
+                          for b, v in r["by_touches"].items())
+        print(f"{name}: accuracy after {args.n_probes} probes {r['accuracy']:.3f} ({split})")
     sim.close()
     print(json.dumps(results))
 

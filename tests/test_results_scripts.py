@@ -116,7 +116,11 @@ def test_table_row_trains_once_is_reused_and_feeds_the_noise_study(tmp_path):
     assert sweep["touches"] == centre["touches"] > 0 and sweep["tilt_deg"] == 0  # same probes, other order
     fan = figures["centre_out-span0.5-lean0.4"]
     assert fan["tilt_deg"] == pytest.approx(11.31 * 6 / 10, abs=0.1)  # 6 of 10 probes lean 11.3 degrees
-    assert 0 <= figures[record["best_checkpoint"]]["any_touch"] <= 1
+    policy = figures[record["best_checkpoint"]]
+    assert 0 <= policy["any_touch"] <= 1 and 0 <= policy["accuracy"] <= 1 and "accuracy" not in centre
+    assert sum(b["share"] for b in policy["by_touches"].values()) == pytest.approx(1, abs=0.01)
+    weighted = sum(b["share"] * b["accuracy"] for b in policy["by_touches"].values() if b["accuracy"] is not None)
+    assert weighted == pytest.approx(policy["accuracy"], abs=0.01)  # the bins split the same episodes
     missing = run("scan_coverage", "--ckpt", str(tmp_path / "nope.ckpt"))
     assert missing.returncode != 0 and "nope.ckpt: checkpoint not found" in missing.stderr
 
