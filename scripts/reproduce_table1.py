@@ -69,8 +69,6 @@ ROWS = {
     "fan_follow_scan_touchset": Row("configs/fan_follow_scan_touchset.yaml",
                                     "fanned scan following the touches + PCRN-FC + touch set (beyond the paper)",
                                     learned=False),
-    "pcrn_fc_follow_touchset": Row("configs/pcrn_fc_follow_touchset.yaml",
-                                   "PCRN-FC+ from the touch-following scan + touch set (beyond the paper)"),
 }
 
 # Table 1 of Riou et al. (ICASSP 2021): accuracy after k probes, 4 objects, held-out poses (no entry for k=1).
