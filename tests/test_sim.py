@@ -133,6 +133,7 @@ def test_request_mapping_stays_inside_limits():
     np.testing.assert_allclose(np.linalg.norm(direction, axis=1), 1)
     tilt = np.degrees(np.arccos(-direction[:, 2]))
     assert (direction[:, 2] < 0).all() and tilt.max() <= 45 + 1e-9 and tilt.max() > 44
+    np.testing.assert_allclose(scene.line_request(entry[:, 1]), np.clip(requests[:, 0], -1, 1))  # the inverse
 
 
 def test_pose_regions_are_disjoint_and_deterministic():

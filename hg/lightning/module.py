@@ -189,8 +189,7 @@ class HapticGlance(pl.LightningModule):
         touched = (points[..., 3] > 0.5).float()
         before = torch.cumsum(touched, 1) - touched  # touches among probes 1..k-1, for request k
         y_sum = torch.cumsum(touched * points[..., 1], 1) - touched * points[..., 1]
-        lo, hi = self.sim.scene.probe_y
-        mean_py = (y_sum / before.clamp(min=1) / self.hparams.point_scale - lo) / (0.5 * (hi - lo)) - 1
+        mean_py = self.sim.scene.line_request(y_sum / before.clamp(min=1) / self.hparams.point_scale)
         first = torch.where(touched.any(1), touched.argmax(1), torch.full_like(touched[:, 0], n, dtype=torch.long))
         j = torch.arange(n, device=points.device) - first[:, None] - 1  # follow-up probe index, -1 at the first touch
         sides = torch.where(j % 2 == 0, j // 2 + 1, -(j // 2 + 1)).float()  # +1, -1, +2, -2, ...

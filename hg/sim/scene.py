@@ -56,6 +56,12 @@ class Scene:
     def _pose_ranges(self) -> tuple[Range, ...]:
         return (self.object_x, self.object_y, self.object_z, self.rot_x_deg, self.rot_y_deg, self.rot_z_deg)
 
+    def line_request(self, y):
+        """The py request whose entry point lies at y on the probe line (numbers, arrays or tensors): the inverse
+        of request_to_probe's mapping, for policies that aim at a place they touched."""
+        lo, hi = self.probe_y
+        return (y - lo) / (0.5 * (hi - lo)) - 1
+
     def request_to_probe(self, requests: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Map requests (py, ux, uy, uz) in [-1, 1] to entry points P (B, 3) and unit directions u (B, 3).
 
