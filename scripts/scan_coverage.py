@@ -7,18 +7,24 @@ scan (`model.scan_span` x `model.scan_order` x `model.scan_lean` x `model.scan_f
 for each checkpoint's mean-action policy (`--ckpt`), on the same episodes of a pose split: mean touches per
 episode after all probes and after half of them, the share of episodes with at least one touch, and the mean
 tilt of the requests from vertical. For a checkpoint also its accuracy after all probes on those rollouts,
-split by how many probes touched (a classifier can only be as good as what it touched). No training; seconds
-on one core.
+split by how many probes touched (a classifier can only be as good as what it touched). Seconds on one core.
+
+With `--fit EPISODES`, also how much a fixed scan's probes can say about the class: a PointNet (hg/nets, with
+BatchNorm and dropout) trained supervised on the scan's probes in EPISODES training-split episodes, each probe
+as (X, Y, Z relative to the mean of the touched points, T), and scored after its last epoch on the episodes
+above. It does not depend on the policy being learned or on the classifier keeping up with it, so it tells
+whether a target is out of reach of a kind of scan. Minutes per scan for 16384 episodes.
 
     .venv/bin/python scripts/scan_coverage.py                        # 512 val episodes, ideal mode
     .venv/bin/python scripts/scan_coverage.py --mode arm --split test
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --leans 0 0.4 --episodes 2048   # the fanned scan
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --follows 0 0.05     # the scan following the touches
     .venv/bin/python scripts/scan_coverage.py --ckpt runs/table1/pcrn_fc_plus-seed0/checkpoints/best-step7500.ckpt
+    .venv/bin/python scripts/scan_coverage.py --spans 0.5 --fit 16384 --episodes 4096   # what the scan can say
 
 Last line: JSON {"<order>-span<span>[-lean<lean>][-follow<follow>]" or "<checkpoint>": {"touches": ..,
-"touches_first_half": .., "any_touch": .., "tilt_deg": ..[, "accuracy": .., "by_touches": {"0-1": {"share": ..,
-"accuracy": ..}, ...}]}, ...}.
+"touches_first_half": .., "any_touch": .., "tilt_deg": ..[, "fit_accuracy": ..][, "accuracy": .., "by_touches":
+{"0-1": {"share": .., "accuracy": ..}, ...}]}, ...}.
 """
 from __future__ import annotations
 
@@ -34,6 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from hg.lightning.module import HapticGlance  # noqa: E402
+from hg.nets.pointcloud import PointNet  # noqa: E402
 from hg.provenance import repo_path  # noqa: E402
 from hg.sim import PoseRegions, ProbeSimulator, sample_episodes  # noqa: E402
 
@@ -41,19 +48,51 @@ from hg.sim import PoseRegions, ProbeSimulator, sample_episodes  # noqa: E402
 TOUCH_BINS = ((0, 1), (2, 3), (4, 5), (6, 10**6))  # touches per episode, inclusive
 
 
-def policy_probes(model: HapticGlance, sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(episodes, probes) contact flags and (episodes, probes, 3) unit probe directions of the model's policy
-    (mean action for a learned one) on these episodes, and (episodes,) whether its prediction after the last
-    probe is right (meaningful for a trained checkpoint only)."""
+def policy_probes(model: HapticGlance, sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray, seed: int = 0
+                  ) -> tuple[torch.Tensor, np.ndarray, np.ndarray]:
+    """(episodes, probes, 4) points and (episodes, probes, 3) unit probe directions of the model's policy (mean
+    action for a learned one) on these episodes, and (episodes,) whether its prediction after the last probe is
+    right (meaningful for a trained checkpoint only)."""
     model.sim = sim
     labels_t = torch.from_numpy(labels)
-    rollout = model.rollout(labels_t, torch.from_numpy(poses), seed=0, deterministic=True)
+    rollout = model.rollout(labels_t, torch.from_numpy(poses), seed=seed, deterministic=True)
     with torch.no_grad():
         correct = (model.evaluate(rollout, labels_t)[1][:, -1].argmax(-1) == labels_t).numpy()
     requests = rollout.requests.double().numpy()
     directions = sim.scene.request_to_probe(requests.reshape(-1, 4))[1]
-    return rollout.points[..., 3].numpy(), directions.reshape(*requests.shape[:2], 3), correct
+    return rollout.points, directions.reshape(*requests.shape[:2], 3), correct
+
+
+def touch_frame(points: torch.Tensor, scale: float = 5.0) -> torch.Tensor:
+    """(B, N, 4) probes -> (B, N, 4): X, Y, Z relative to the mean of the episode's touched points (x scale, to
+    about unit size), and T. Where the object lies is no class cue; misses stay in, as where it is not."""
+    touched = points[..., 3:]
+    centre = (points[..., :3] * touched).sum(1, keepdim=True) / touched.sum(1, keepdim=True).clamp(min=1)
+    return torch.cat([(points[..., :3] - centre) * scale, touched], -1)
+
+
+def fit_accuracy(model: HapticGlance, sim: ProbeSimulator, regions: PoseRegions, n_train: int, val_points: torch.Tensor,
+                 val_labels: np.ndarray, epochs: int, seed: int) -> float:
+    """Validation accuracy of a PointNet trained supervised on the fixed scan's probes in n_train training-split
+    episodes (rolled out in batches of the simulator's size): what this scan's probes can say about the class."""
+    rng, batches = np.random.default_rng(seed + 1), []
+    for i in range(max(1, n_train // sim.batch_size)):
+        labels, poses = sample_episodes(regions, "train", sim.batch_size, len(sim.classes), rng)
+        batches.append((policy_probes(model, sim, labels, poses, seed=seed + 1 + i)[0], torch.from_numpy(labels)))
+    points, labels = touch_frame(torch.cat([b[0] for b in batches])), torch.cat([b[1] for b in batches])
+    torch.manual_seed(seed)
+    net = PointNet(len(sim.classes), in_dim=4)
+    optimiser = torch.optim.Adam(net.parameters(), lr=1e-3)
+    for _ in range(epochs):
+        net.train()
+        for idx in torch.randperm(len(points)).split(256):
+            loss = torch.nn.functional.cross_entropy(net(points[idx]), labels[idx])
+            optimiser.zero_grad()
+            loss.backward()
+            optimiser.step()
+    net.eval()
+    with torch.no_grad():
+        return float((net(touch_frame(val_points)).argmax(-1).numpy() == val_labels).mean())
 
 
 def accuracy_by_touches(touches: np.ndarray, correct: np.ndarray) -> dict:
@@ -83,6 +122,7 @@ def main() -> None:
     parser.add_argument("--n-probes", type=int, default=10)
     parser.add_argument("--mode", choices=["ideal", "arm"], default="ideal")
     parser.add_argument("--split", choices=["train", "val", "test"], default="val")
+    parser.add_argument("--orders", nargs="+", choices=["sweep", "centre_out"], default=["sweep", "centre_out"])
     parser.add_argument("--spans", type=float, nargs="+", default=[1.0, 0.75, 0.5])
     parser.add_argument("--leans", type=float, nargs="+", default=[0.0],
                         help="model.scan_lean values (0: straight down)")
@@ -90,13 +130,16 @@ def main() -> None:
                         help="model.scan_follow values (0: the scan ignores its touches)")
     parser.add_argument("--ckpt", type=Path, nargs="*", default=[], help="checkpoints whose policies to measure too")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--fit", type=int, default=0, metavar="EPISODES",
+                        help="also train a PointNet on each fixed scan's probes in this many training episodes")
+    parser.add_argument("--fit-epochs", type=int, default=25)
     args = parser.parse_args()
     torch.set_num_threads(1)
 
     scans = {f"{order}-span{span:g}" + (f"-lean{lean:g}" if lean else "") + (f"-follow{follow:g}" if follow else ""):
              HapticGlance(n_probes=args.n_probes, policy="line_scan", scan_span=span, scan_order=order, scan_lean=lean,
                           scan_follow=follow)
-             for order in ("sweep", "centre_out") for span in args.spans for lean in args.leans
+             for order in args.orders for span in args.spans for lean in args.leans
              for follow in args.follows}
     models = dict(scans)
     for path in args.ckpt:
@@ -104,19 +147,24 @@ def main() -> None:
             sys.exit(f"scan_coverage: error: {path}: checkpoint not found")
         models[repo_path(path)] = HapticGlance.load_from_checkpoint(path, map_location="cpu").eval()
     sim = ProbeSimulator("hg4", batch_size=args.episodes, mode=args.mode, seed=args.seed)
-    labels, poses = sample_episodes(PoseRegions(sim.scene), args.split, args.episodes, len(sim.classes),
-                                    np.random.default_rng(args.seed))
+    regions = PoseRegions(sim.scene)
+    labels, poses = sample_episodes(regions, args.split, args.episodes, len(sim.classes), np.random.default_rng(args.seed))
     half = args.n_probes // 2
     print(f"{args.episodes} {args.split} episodes, {args.mode} mode, {args.n_probes} probes")
-    print(f"{'touches':>8} {f'after {half}':>9} {'any touch':>10} {'tilt (deg)':>11}  scan or checkpoint")
+    print(f"{'touches':>8} {f'after {half}':>9} {'any touch':>10} {'tilt (deg)':>11}"
+          + (f" {'fit acc':>8}" if args.fit else "") + "  scan or checkpoint")
     results = {}
     for name, model in models.items():
         if model.hparams.n_probes != args.n_probes:
             sys.exit(f"scan_coverage: error: {name}: trained for {model.hparams.n_probes} probes, not {args.n_probes}")
-        touches, directions, correct = policy_probes(model, sim, labels, poses)
+        points, directions, correct = policy_probes(model, sim, labels, poses)
+        touches = points[..., 3].numpy()
         r = results[name] = coverage(touches, directions)
-        print(f"{r['touches']:8.2f} {r['touches_first_half']:9.2f} {r['any_touch']:10.2f} {r['tilt_deg']:11.1f}  "
-              f"{name}")
+        if args.fit and name in scans:
+            r["fit_accuracy"] = round(fit_accuracy(model, sim, regions, args.fit, points, labels, args.fit_epochs,
+                                                   args.seed), 3)
+        print(f"{r['touches']:8.2f} {r['touches_first_half']:9.2f} {r['any_touch']:10.2f} {r['tilt_deg']:11.1f}"
+              + (f" {r['fit_accuracy']:8.3f}" if "fit_accuracy" in r else "") + f"  {name}", flush=True)
         if name not in scans:  # a fixed scan built here has an untrained classifier: no accuracy
             r.update(accuracy_by_touches(touches, correct))
     for name in (name for name in results if name not in scans):

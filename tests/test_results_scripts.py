@@ -105,7 +105,7 @@ def test_table_row_trains_once_is_reused_and_feeds_the_noise_study(tmp_path):
     assert again.returncode == 0 and json.loads(again.stdout.strip().splitlines()[-1])["ours"][0] == clean["accuracy"]
     # where the checkpoint's policy probes, beside the fixed scans, on the same episodes
     coverage = run("scan_coverage", "--episodes", "32", "--spans", "0.5", "--leans", "0", "0.4",
-                   "--follows", "0", "0.05", "--ckpt", record["best_checkpoint"])
+                   "--follows", "0", "0.05", "--ckpt", record["best_checkpoint"], "--fit", "32", "--fit-epochs", "1")
     assert coverage.returncode == 0, coverage.stderr[-2000:]
     figures = json.loads(coverage.stdout.strip().splitlines()[-1])
     scans = {f"{order}-span0.5{lean}{follow}" for order in ("sweep", "centre_out") for lean in ("", "-lean0.4")
@@ -118,6 +118,9 @@ def test_table_row_trains_once_is_reused_and_feeds_the_noise_study(tmp_path):
     assert fan["tilt_deg"] == pytest.approx(11.31 * 6 / 10, abs=0.1)  # 6 of 10 probes lean 11.3 degrees
     policy = figures[record["best_checkpoint"]]
     assert 0 <= policy["any_touch"] <= 1 and 0 <= policy["accuracy"] <= 1 and "accuracy" not in centre
+    # a classifier trained on each fixed scan's probes; the checkpoint brings its own
+    assert all(0 <= figures[s]["fit_accuracy"] <= 1 for s in scans) and "fit_accuracy" not in policy
+    assert sweep["fit_accuracy"] == centre["fit_accuracy"]  # the same probes in another order, to a PointNet
     assert sum(b["share"] for b in policy["by_touches"].values()) == pytest.approx(1, abs=0.01)
     weighted = sum(b["share"] * b["accuracy"] for b in policy["by_touches"].values() if b["accuracy"] is not None)
     assert weighted == pytest.approx(policy["accuracy"], abs=0.01)  # the bins split the same episodes
