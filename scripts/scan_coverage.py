@@ -10,7 +10,7 @@ tilt of the requests from vertical. For a checkpoint also its accuracy after all
 split by how many probes touched (a classifier can only be as good as what it touched). Seconds on one core.
 
 With `--fit EPISODES`, also how much a fixed scan's probes can say about the class: a PointNet (hg/nets, with
-BatchNorm and dropout) trained supervised on the scan's probes in EPISODES training-split episodes, each probe
+BatchNorm and dropout; or `--fit-net touch_set`, the model's touch-set classifier) trained supervised on the scan's probes in EPISODES training-split episodes, each probe
 as (X, Y, Z relative to the mean of the touched points, T), and scored after its last epoch on the episodes
 above. It does not depend on the policy being learned or on the classifier keeping up with it, so it tells
 whether a target is out of reach of a kind of scan. Minutes per scan for 16384 episodes.
@@ -40,7 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from hg.lightning.module import HapticGlance  # noqa: E402
-from hg.nets.pointcloud import PointNet  # noqa: E402
+from hg.nets.pointcloud import PointNet, TouchSetClassifier  # noqa: E402
 from hg.provenance import repo_path  # noqa: E402
 from hg.sim import PoseRegions, ProbeSimulator, sample_episodes  # noqa: E402
 
@@ -71,17 +71,32 @@ def touch_frame(points: torch.Tensor, scale: float = 5.0) -> torch.Tensor:
     return torch.cat([(points[..., :3] - centre) * scale, touched], -1)
 
 
+class FitNet(torch.nn.Module):
+    """The classifier `--fit` trains on all probes of an episode: a PointNet on touch_frame(points), or the model's
+    own touch-set classifier (model.touch_set; its logits after the last probe), to compare them on the same
+    probes."""
+
+    def __init__(self, kind: str, n_classes: int) -> None:
+        super().__init__()
+        self.kind = kind
+        self.net = PointNet(n_classes, in_dim=4) if kind == "pointnet" else TouchSetClassifier(n_classes)
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        return self.net(touch_frame(points)) if self.kind == "pointnet" else self.net(points)[:, -1]
+
+
 def fit_accuracy(model: HapticGlance, sim: ProbeSimulator, regions: PoseRegions, n_train: int, val_points: torch.Tensor,
-                 val_labels: np.ndarray, epochs: int, seed: int) -> float:
-    """Validation accuracy of a PointNet trained supervised on the fixed scan's probes in n_train training-split
-    episodes (rolled out in batches of the simulator's size): what this scan's probes can say about the class."""
+                 val_labels: np.ndarray, epochs: int, seed: int, kind: str = "pointnet") -> float:
+    """Validation accuracy of a classifier (FitNet) trained supervised on the fixed scan's probes in n_train
+    training-split episodes (rolled out in batches of the simulator's size): what this scan's probes can say
+    about the class."""
     rng, batches = np.random.default_rng(seed + 1), []
     for i in range(max(1, n_train // sim.batch_size)):
         labels, poses = sample_episodes(regions, "train", sim.batch_size, len(sim.classes), rng)
         batches.append((policy_probes(model, sim, labels, poses, seed=seed + 1 + i)[0], torch.from_numpy(labels)))
-    points, labels = touch_frame(torch.cat([b[0] for b in batches])), torch.cat([b[1] for b in batches])
+    points, labels = torch.cat([b[0] for b in batches]), torch.cat([b[1] for b in batches])
     torch.manual_seed(seed)
-    net = PointNet(len(sim.classes), in_dim=4)
+    net = FitNet(kind, len(sim.classes))
     optimiser = torch.optim.Adam(net.parameters(), lr=1e-3)
     for _ in range(epochs):
         net.train()
@@ -92,7 +107,7 @@ def fit_accuracy(model: HapticGlance, sim: ProbeSimulator, regions: PoseRegions,
             optimiser.step()
     net.eval()
     with torch.no_grad():
-        return float((net(touch_frame(val_points)).argmax(-1).numpy() == val_labels).mean())
+        return float((net(val_points).argmax(-1).numpy() == val_labels).mean())
 
 
 def accuracy_by_touches(touches: np.ndarray, correct: np.ndarray) -> dict:
@@ -133,6 +148,8 @@ def main() -> None:
     parser.add_argument("--fit", type=int, default=0, metavar="EPISODES",
                         help="also train a PointNet on each fixed scan's probes in this many training episodes")
     parser.add_argument("--fit-epochs", type=int, default=25)
+    parser.add_argument("--fit-net", choices=["pointnet", "touch_set"], default="pointnet",
+                        help="the classifier --fit trains: a PointNet, or the model's touch-set classifier")
     args = parser.parse_args()
     torch.set_num_threads(1)
 
@@ -162,7 +179,7 @@ def main() -> None:
         r = results[name] = coverage(touches, directions)
         if args.fit and name in scans:
             r["fit_accuracy"] = round(fit_accuracy(model, sim, regions, args.fit, points, labels, args.fit_epochs,
-                                                   args.seed), 3)
+                                                   args.seed, args.fit_net), 3)
         print(f"{r['touches']:8.2f} {r['touches_first_half']:9.2f} {r['any_touch']:10.2f} {r['tilt_deg']:11.1f}"
               + (f" {r['fit_accuracy']:8.3f}" if "fit_accuracy" in r else "") + f"  {name}", flush=True)
         if name not in scans:  # a fixed scan built here has an untrained classifier: no accuracy
