@@ -251,6 +251,9 @@ def test_fit_then_test_from_checkpoint(tmp_path):
     runs = list(tmp_path.glob("runs/wandb/offline-run-*"))
     assert len(runs) == 1 and (runs[0] / "files" / "config.yaml").is_file()
     assert list(runs[0].glob("*.wandb"))
+    curve = list(csv.reader((runs[0] / "files" / "val_curve.csv").open()))  # one row per validation: steps 2, 4
+    assert curve[0][:2] == ["step", "stochastic@1"] and len(curve[0]) == 1 + 2 * 4
+    assert [row[0] for row in curve[1:]] == ["2", "4"] and all(0 <= float(v) <= 1 for v in curve[1][1:])
     hg("test", "--config", TINY, "--ckpt_path", str(checkpoints[0]), cwd=tmp_path)
     first = latest_csv(tmp_path)
     hg("test", "--config", TINY, "--ckpt_path", str(checkpoints[0]), cwd=tmp_path)

@@ -41,7 +41,30 @@ def per_probe_table(metrics: dict, stage: str, n_probes: int) -> dict[str, list[
 
 class PerProbeAccuracy(pl.Callback):
     """At test end: per_probe_accuracy.csv and .png in the run directory, the same logged to wandb, and the
-    table printed. Accuracy after probe k is logged during evaluation as `val/acc@k` and `test/acc@k`."""
+    table printed. Accuracy after probe k is logged during evaluation as `val/acc@k` and `test/acc@k`.
+
+    After every validation, a row of val_curve.csv in the run directory (global step, then accuracy after each
+    probe): the learning curve, readable while a run goes on and without a wandb reader for offline runs."""
+
+    @rank_zero_only
+    def on_validation_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        if trainer.sanity_checking:
+            return
+        n_probes = pl_module.hparams.n_probes
+        columns = per_probe_table(trainer.callback_metrics, "val", n_probes)
+        if not columns:
+            return
+        header = ["step", *(f"{label}@{k}" for label in columns for k in range(1, n_probes + 1))]
+        path = run_dir(trainer) / "val_curve.csv"
+        rows = list(csv.reader(path.open())) if path.is_file() else [header]
+        if rows[0] != header:
+            raise ValueError(f"{path}: header {rows[0]} is not this run's {header}")
+        step = str(trainer.global_step)
+        rows = [rows[0], *(r for r in rows[1:] if r[0] != step)]  # a resumed run validates its step again
+        rows.append([step, *(f"{v:.4f}" for values in columns.values() for v in values)])
+        text = io.StringIO()
+        csv.writer(text).writerows(rows)
+        write_atomic(path, text.getvalue())
 
     @rank_zero_only
     def on_test_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
