@@ -69,6 +69,11 @@ ROWS = {
     "fan_follow_scan_touchset": Row("configs/fan_follow_scan_touchset.yaml",
                                     "fanned scan following the touches + PCRN-FC + touch set (beyond the paper)",
                                     learned=False),
+    "centre_scan_touchset_wide": Row("configs/centre_scan_touchset_wide.yaml",
+                                     "centre-out scan + PCRN-FC + wide touch set (beyond the paper)", learned=False),
+    "pcrn_fc_centre_touchset_warmup_wide": Row("configs/pcrn_fc_centre_touchset_warmup_wide.yaml",
+                                               "PCRN-FC+ from the centre-out scan + wide touch set, policy from step "
+                                               "4000 (beyond the paper)"),
 }
 
 # Table 1 of Riou et al. (ICASSP 2021): accuracy after k probes, 4 objects, held-out poses (no entry for k=1).

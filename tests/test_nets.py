@@ -158,8 +158,9 @@ def touched_points(touched: list[bool]) -> torch.Tensor:
     return points
 
 
-def test_touch_set_causal_and_blind_to_where_the_object_lies() -> None:
-    clf = TouchSetClassifier(4, width=16, hidden=16)
+@pytest.mark.parametrize("misses", [False, True], ids=["small", "with misses"])
+def test_touch_set_causal_and_blind_to_where_the_object_lies(misses) -> None:
+    clf = TouchSetClassifier(4, shared=(8, 16, 32), hidden=16, misses=misses, layer_norm=misses)
     points = touched_points([True] * N)
     logits = clf(points)
     assert logits.shape == (B, N, 4)
@@ -174,7 +175,7 @@ def test_touch_set_causal_and_blind_to_where_the_object_lies() -> None:
 
 def test_touch_set_ignores_missed_probes() -> None:
     """A miss reports no surface point: its coordinates must not matter, and a prefix of misses is finite."""
-    clf = TouchSetClassifier(4, width=16, hidden=16)
+    clf = TouchSetClassifier(4, shared=(8, 16, 32), hidden=16)
     points = touched_points([False, True, False, True, True, False])
     changed = points.clone()
     changed[:, [0, 2, 5], :3] += 5.0
@@ -182,6 +183,16 @@ def test_touch_set_ignores_missed_probes() -> None:
     assert torch.isfinite(logits).all()
     assert torch.allclose(clf(changed), logits)
     assert not torch.allclose(logits[:, 0], logits[:, 1])  # the first touch changes the prediction
+
+
+def test_wide_touch_set_reads_where_probes_missed() -> None:
+    """A miss reports where its ray ended: the wide variant reads it from its probe on, never before."""
+    clf = TouchSetClassifier.wide(4)
+    points = touched_points([True, True, False, True, False, True])
+    changed = points.clone()
+    changed[:, 2, :3] += 0.5
+    differs = (clf(changed) - clf(points)).abs().amax(dim=(0, 2)) > 1e-5
+    assert differs.tolist() == [k >= 2 for k in range(6)]
 
 
 @pytest.mark.parametrize("make", [lambda: PointNet(4), lambda: DGCNN(4, k=9)], ids=["PointNet", "DGCNN"])

@@ -100,7 +100,7 @@ class HapticGlance(pl.LightningModule):
                  prior: Literal["none", "line_scan"] = "none", scan_span: float = 1.0,
                  scan_order: Literal["sweep", "centre_out"] = "sweep", scan_lean: float = 0.0, scan_follow: float = 0.0,
                  point_frame: Literal["episode", "first_touch"] = "episode", touch_set: bool = False,
-                 policy_warmup_steps: int = 0) -> None:
+                 touch_set_net: Literal["small", "wide"] = "small", policy_warmup_steps: int = 0) -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -125,7 +125,11 @@ class HapticGlance(pl.LightningModule):
             raise ValueError(f"model.policy={policy!r}: expected 'learned', 'random' or 'line_scan'")
         self.classifier = classifiers[classifier]()
         # beyond the paper: the logits of a translation-invariant classifier of the touched points are added
-        self.touch_set = TouchSetClassifier(n_classes, hidden=hidden) if touch_set else None
+        if touch_set_net not in ("small", "wide"):
+            raise ValueError(f"model.touch_set_net={touch_set_net!r}: expected 'small' or 'wide'")
+        touch_nets = {"small": lambda: TouchSetClassifier(n_classes, hidden=hidden),
+                      "wide": lambda: TouchSetClassifier.wide(n_classes)}  # wide: reads misses too, LayerNorm
+        self.touch_set = touch_nets[touch_set_net]() if touch_set else None
         self.location = LocationNetwork(dim, hidden=128, std_floor=std_floor, std_max=std_max)
         self.baseline = Baseline(dim)
         self.sim: ProbeSimulator | None = None

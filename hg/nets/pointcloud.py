@@ -85,13 +85,24 @@ class TouchSetClassifier(nn.Module):
 
     Shared MLP on each touched point -> max pool over the touched points of the prefix -> (pooled, share of
     probes that touched) -> MLP -> logits. A prefix without a touch pools to zeros.
+
+    With `misses`, every probe of the prefix is pooled, as (X, Y, Z relative to the touched points' mean, T): a
+    miss reports where its ray ended, so it says where the object is not, which tells where it ends. The wide
+    variant (`wide()`) pools misses too, 512 features wide, with LayerNorm: on the same fixed-scan probes it learns more
+    (`scan_coverage.py --fit-net`).
     """
 
-    def __init__(self, n_classes: int, width: int = 128, hidden: int = 256, scale: float = 5.0) -> None:
+    def __init__(self, n_classes: int, shared: tuple[int, ...] = (64, 128, 256), hidden: int = 256,
+                 scale: float = 5.0, misses: bool = False, layer_norm: bool = False) -> None:
         super().__init__()
         self.scale = scale  # relative coordinates of a ~0.2 m object (x point_scale) to about unit size
-        self.shared = mlp([3, width // 2, width, 2 * width])
-        self.head = mlp([2 * width + 1, hidden, n_classes], last_act=False)
+        self.misses = misses
+        self.shared = mlp([4 if misses else 3, *shared], layer_norm=layer_norm)
+        self.head = mlp([shared[-1] + 1, hidden, n_classes], last_act=False, layer_norm=layer_norm)
+
+    @classmethod
+    def wide(cls, n_classes: int) -> "TouchSetClassifier":
+        return cls(n_classes, shared=(64, 128, 512), misses=True, layer_norm=True)
 
     def forward(self, points: Tensor) -> Tensor:
         """points (B, N, 4): X, Y, Z and the contact flag T -> logits (B, N, n_classes)."""
@@ -102,7 +113,13 @@ class TouchSetClassifier(nn.Module):
         count = mask.sum(-1, keepdim=True)  # (B, K, 1)
         centre = (mask @ xyz) / count.clamp(min=1)  # (B, K, 3)
         relative = (xyz[:, None] - centre[:, :, None]) * self.scale  # (B, K, J, 3)
-        features = self.shared(relative).masked_fill(mask[..., None] < 0.5, float("-inf")).amax(2)  # (B, K, F)
-        features = torch.where(count > 0, features, torch.zeros_like(features))
+        if self.misses:
+            pooled = prefix.expand_as(mask)
+            relative = torch.cat([relative, touched[:, None, :, None].expand(-1, n, -1, 1)], -1)
+        else:
+            pooled = mask
+        features = self.shared(relative).masked_fill(pooled[..., None] < 0.5, float("-inf")).amax(2)  # (B, K, F)
+        if not self.misses:
+            features = torch.where(count > 0, features, torch.zeros_like(features))
         share = count / torch.arange(1, n + 1, dtype=points.dtype, device=points.device)[:, None]
         return self.head(torch.cat([features, share], -1))
