@@ -39,7 +39,7 @@ def final_state(folder):
 def reference(tmp_path_factory):
     folder = tmp_path_factory.mktemp("uninterrupted")
     fit(folder)
-    return final_state(folder)
+    return (*final_state(folder), (folder / "val_curve.csv").read_text())
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
@@ -60,3 +60,5 @@ def test_killed_fit_resumes_to_the_same_result(tmp_path, reference, sig):
     assert step == reference[0] == STEPS
     for key, value in reference[1].items():
         torch.testing.assert_close(state[key], value, msg=f"{key} differs after resume")
+    # the learning curve continues across the kill: the same rows, every validation once
+    assert (tmp_path / "val_curve.csv").read_text() == reference[2] and reference[2].count("\n") == 1 + STEPS // 50

@@ -56,12 +56,13 @@ class PerProbeAccuracy(pl.Callback):
             return
         header = ["step", *(f"{label}@{k}" for label in columns for k in range(1, n_probes + 1))]
         path = run_dir(trainer) / "val_curve.csv"
-        rows = list(csv.reader(path.open())) if path.is_file() else [header]
-        if rows[0] != header:
-            raise ValueError(f"{path}: header {rows[0]} is not this run's {header}")
-        step = str(trainer.global_step)
-        rows = [rows[0], *(r for r in rows[1:] if r[0] != step)]  # a resumed run validates its step again
-        rows.append([step, *(f"{v:.4f}" for values in columns.values() for v in values)])
+        step = trainer.global_step
+        rows = list(csv.reader(path.open())) if path.is_file() else []
+        # a resumed run continues its curve (dropping steps it validates again); another run's curve found there
+        # (runs without a logger share the root folder) is replaced, never mixed in
+        continued = len(rows) > 1 and rows[0] == header and int(rows[1][0]) < step
+        rows = [header, *(r for r in rows[1:] if int(r[0]) < step)] if continued else [header]
+        rows.append([str(step), *(f"{v:.4f}" for values in columns.values() for v in values)])
         text = io.StringIO()
         csv.writer(text).writerows(rows)
         write_atomic(path, text.getvalue())
