@@ -27,3 +27,17 @@ def test_bad_input_gives_one_line(tmp_path, args, field):
     assert "Traceback" not in proc.stderr
     errors = [line for line in proc.stderr.splitlines() if "error" in line.lower() and field in line]
     assert errors, proc.stderr[-2000:]
+
+
+CONFIGS = sorted((Path(__file__).resolve().parents[1] / "configs").glob("*.yaml"))
+
+
+def test_every_shipped_config_builds():
+    """A typo in a Table 1 config must fail here, not half an hour into its run."""
+    from hg.lightning.cli import cli
+
+    os.environ.setdefault("WANDB_MODE", "disabled")
+    assert len(CONFIGS) >= 10
+    for path in CONFIGS:
+        built = cli(["--config", str(path), "--trainer.logger", "false"], run=False)
+        assert built.model.hparams.n_probes == built.datamodule.n_probes, path.name
