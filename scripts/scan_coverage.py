@@ -7,7 +7,8 @@ scan (`model.scan_span` x `model.scan_order` x `model.scan_lean` x `model.scan_f
 for each checkpoint's mean-action policy (`--ckpt`), on the same episodes of a pose split: mean touches per
 episode after all probes and after half of them, the share of episodes with at least one touch, and the mean
 tilt of the requests from vertical. For a checkpoint also its accuracy after all probes on those rollouts,
-split by how many probes touched (a classifier can only be as good as what it touched). Seconds on one core.
+split by how many probes touched (a classifier can only be as good as what it touched) and by how far the
+object lies off the probe line. Seconds on one core.
 
 With `--fit EPISODES`, also how much a fixed scan's probes can say about the class: a PointNet (hg/nets, with
 BatchNorm and dropout; or `--fit-net touch_set`, the model's touch-set classifier) trained supervised on the scan's probes in EPISODES training-split episodes, each probe
@@ -24,7 +25,7 @@ whether a target is out of reach of a kind of scan. Minutes per scan for 16384 e
 
 Last line: JSON {"<order>-span<span>[-lean<lean>][-follow<follow>]" or "<checkpoint>": {"touches": ..,
 "touches_first_half": .., "any_touch": .., "tilt_deg": ..[, "fit_accuracy": ..][, "accuracy": .., "by_touches":
-{"0-1": {"share": .., "accuracy": ..}, ...}]}, ...}.
+{"0-1": {"share": .., "accuracy": ..}, ...}, "by_offset_cm": {"0-5": {...}, "5-10": .., "10+": ..}]}, ...}.
 """
 from __future__ import annotations
 
@@ -46,6 +47,7 @@ from hg.sim import PoseRegions, ProbeSimulator, sample_episodes  # noqa: E402
 
 
 TOUCH_BINS = ((0, 1), (2, 3), (4, 5), (6, 10**6))  # touches per episode, inclusive
+OFFSET_BINS = ((0.0, 0.05), (0.05, 0.10), (0.10, 10.0))  # |object X - probe line X| in metres, [low, high)
 
 
 def policy_probes(model: HapticGlance, sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray, seed: int = 0
@@ -110,16 +112,20 @@ def fit_accuracy(model: HapticGlance, sim: ProbeSimulator, regions: PoseRegions,
         return float((net(val_points).argmax(-1).numpy() == val_labels).mean())
 
 
-def accuracy_by_touches(touches: np.ndarray, correct: np.ndarray) -> dict:
-    """Accuracy after all probes, overall and per bin of touches per episode (None for an empty bin)."""
+def accuracy_by_touches(touches: np.ndarray, correct: np.ndarray, offsets: np.ndarray) -> dict:
+    """Accuracy after all probes, overall, per bin of touches per episode, and per bin of the object's distance
+    from the probe line across it (straight probes miss what lies far off the line); None for an empty bin."""
     counts = touches.sum(1)
-    bins = {}
-    for lo, hi in TOUCH_BINS:
-        inside = (counts >= lo) & (counts <= hi)
-        name = f"{lo}-{hi}" if hi < 10**6 else f"{lo}+"
-        bins[name] = {"share": round(float(inside.mean()), 3),
-                      "accuracy": round(float(correct[inside].mean()), 3) if inside.any() else None}
-    return {"accuracy": round(float(correct.mean()), 3), "by_touches": bins}
+
+    def split(inside: np.ndarray) -> dict:
+        return {"share": round(float(inside.mean()), 3),
+                "accuracy": round(float(correct[inside].mean()), 3) if inside.any() else None}
+
+    return {"accuracy": round(float(correct.mean()), 3),
+            "by_touches": {f"{lo}-{hi}" if hi < 10**6 else f"{lo}+": split((counts >= lo) & (counts <= hi))
+                           for lo, hi in TOUCH_BINS},
+            "by_offset_cm": {f"{100 * lo:g}-{100 * hi:g}" if hi < 10 else f"{100 * lo:g}+":
+                             split((offsets >= lo) & (offsets < hi)) for lo, hi in OFFSET_BINS}}
 
 
 def coverage(touches: np.ndarray, directions: np.ndarray) -> dict[str, float]:
@@ -183,13 +189,13 @@ def main() -> None:
         print(f"{r['touches']:8.2f} {r['touches_first_half']:9.2f} {r['any_touch']:10.2f} {r['tilt_deg']:11.1f}"
               + (f" {r['fit_accuracy']:8.3f}" if "fit_accuracy" in r else "") + f"  {name}", flush=True)
         if name not in scans:  # a fixed scan built here has an untrained classifier: no accuracy
-            r.update(accuracy_by_touches(touches, correct))
+            r.update(accuracy_by_touches(touches, correct, np.abs(poses[:, 0] - sim.scene.probe_x)))
     for name in (name for name in results if name not in scans):
         r = results[name]
-        split = ", ".join(f"{b} touches: {v['share']:.2f} of episodes, accuracy "
-                          + ("-" if v["accuracy"] is None else f"{v['accuracy']:.3f}")
-                          for b, v in r["by_touches"].items())
-        print(f"{name}: accuracy after {args.n_probes} probes {r['accuracy']:.3f} ({split})")
+        for key, unit in (("by_touches", "touches"), ("by_offset_cm", "cm off the line")):
+            split = ", ".join(f"{b} {unit}: {v['share']:.2f} of episodes, accuracy "
+                              + ("-" if v["accuracy"] is None else f"{v['accuracy']:.3f}") for b, v in r[key].items())
+            print(f"{name}: accuracy after {args.n_probes} probes {r['accuracy']:.3f} ({split})")
     sim.close()
     print(json.dumps(results))
 

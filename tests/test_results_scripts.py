@@ -121,9 +121,11 @@ def test_table_row_trains_once_is_reused_and_feeds_the_noise_study(tmp_path):
     # a classifier trained on each fixed scan's probes; the checkpoint brings its own
     assert all(0 <= figures[s]["fit_accuracy"] <= 1 for s in scans) and "fit_accuracy" not in policy
     assert sweep["fit_accuracy"] == centre["fit_accuracy"]  # the same probes in another order, to a PointNet
-    assert sum(b["share"] for b in policy["by_touches"].values()) == pytest.approx(1, abs=0.01)
-    weighted = sum(b["share"] * b["accuracy"] for b in policy["by_touches"].values() if b["accuracy"] is not None)
-    assert weighted == pytest.approx(policy["accuracy"], abs=0.01)  # the bins split the same episodes
+    for split in ("by_touches", "by_offset_cm"):
+        bins = policy[split].values()
+        assert sum(b["share"] for b in bins) == pytest.approx(1, abs=0.01)  # objects lie within 15 cm of the line
+        weighted = sum(b["share"] * b["accuracy"] for b in bins if b["accuracy"] is not None)
+        assert weighted == pytest.approx(policy["accuracy"], abs=0.01)
     missing = run("scan_coverage", "--ckpt", str(tmp_path / "nope.ckpt"))
     assert missing.returncode != 0 and "nope.ckpt: checkpoint not found" in missing.stderr
 
