@@ -11,9 +11,9 @@ split by how many probes touched (a classifier can only be as good as what it to
 object lies off the probe line. Seconds on one core.
 
 With `--fit EPISODES`, also how much a fixed scan's probes can say about the class: a PointNet (hg/nets, with
-BatchNorm and dropout; or `--fit-net touch_set`, the model's touch-set classifier) trained supervised on the scan's probes in EPISODES training-split episodes, each probe
-as (X, Y, Z relative to the mean of the touched points, T), and scored after its last epoch on the episodes
-above. It does not depend on the policy being learned or on the classifier keeping up with it, so it tells
+BatchNorm and dropout; or `--fit-net touch_set`, the model's touch-set classifier) trained supervised on the
+scan's probes in EPISODES training-split episodes, each probe as (X, Y, Z relative to the mean of the touched
+points, T), and scored after its last epoch on the episodes above. It does not depend on the policy being learned or on the classifier keeping up with it, so it tells
 whether a target is out of reach of a kind of scan. Minutes per scan for 16384 episodes.
 
     .venv/bin/python scripts/scan_coverage.py                        # 512 val episodes, ideal mode

@@ -32,11 +32,11 @@ def test_bad_input_gives_one_line(tmp_path, args, field):
 CONFIGS = sorted((Path(__file__).resolve().parents[1] / "configs").glob("*.yaml"))
 
 
-def test_every_shipped_config_builds():
+def test_every_shipped_config_builds(monkeypatch):
     """A typo in a Table 1 config must fail here, not half an hour into its run."""
     from hg.lightning.cli import cli
 
-    os.environ.setdefault("WANDB_MODE", "disabled")
+    monkeypatch.setenv("WANDB_MODE", "disabled")
     assert len(CONFIGS) >= 10
     for path in CONFIGS:
         built = cli(["--config", str(path), "--trainer.logger", "false"], run=False)

@@ -125,10 +125,10 @@ class HapticGlance(pl.LightningModule):
             raise ValueError(f"model.policy={policy!r}: expected 'learned', 'random' or 'line_scan'")
         self.classifier = classifiers[classifier]()
         # beyond the paper: the logits of a translation-invariant classifier of the touched points are added
-        if touch_set_net not in ("small", "wide"):
-            raise ValueError(f"model.touch_set_net={touch_set_net!r}: expected 'small' or 'wide'")
         touch_nets = {"small": lambda: TouchSetClassifier(n_classes, hidden=hidden),
                       "wide": lambda: TouchSetClassifier.wide(n_classes)}  # wide: reads misses too, LayerNorm
+        if touch_set_net not in touch_nets:
+            raise ValueError(f"model.touch_set_net={touch_set_net!r}: expected one of {sorted(touch_nets)}")
         self.touch_set = touch_nets[touch_set_net]() if touch_set else None
         self.location = LocationNetwork(dim, hidden=128, std_floor=std_floor, std_max=std_max)
         self.baseline = Baseline(dim)

@@ -88,8 +88,8 @@ class TouchSetClassifier(nn.Module):
 
     With `misses`, every probe of the prefix is pooled, as (X, Y, Z relative to the touched points' mean, T): a
     miss reports where its ray ended, so it says where the object is not, which tells where it ends. The wide
-    variant (`wide()`) pools misses too, 512 features wide, with LayerNorm: on the same fixed-scan probes it learns more
-    (`scan_coverage.py --fit-net`).
+    variant (`wide()`) pools misses too, 512 features wide, with LayerNorm: on the same fixed-scan probes it
+    learns more (`scan_coverage.py --fit-net`).
     """
 
     def __init__(self, n_classes: int, shared: tuple[int, ...] = (64, 128, 256), hidden: int = 256,
@@ -113,13 +113,11 @@ class TouchSetClassifier(nn.Module):
         count = mask.sum(-1, keepdim=True)  # (B, K, 1)
         centre = (mask @ xyz) / count.clamp(min=1)  # (B, K, 3)
         relative = (xyz[:, None] - centre[:, :, None]) * self.scale  # (B, K, J, 3)
+        pooled = mask  # (B, K, J): the probes pooled into prefix k
         if self.misses:
             pooled = prefix.expand_as(mask)
             relative = torch.cat([relative, touched[:, None, :, None].expand(-1, n, -1, 1)], -1)
-        else:
-            pooled = mask
         features = self.shared(relative).masked_fill(pooled[..., None] < 0.5, float("-inf")).amax(2)  # (B, K, F)
-        if not self.misses:
-            features = torch.where(count > 0, features, torch.zeros_like(features))
+        features = torch.where(pooled.sum(-1, keepdim=True) > 0, features, torch.zeros_like(features))
         share = count / torch.arange(1, n + 1, dtype=points.dtype, device=points.device)[:, None]
         return self.head(torch.cat([features, share], -1))
