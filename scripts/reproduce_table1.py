@@ -74,6 +74,10 @@ ROWS = {
     "pcrn_fc_centre_touchset_warmup_wide": Row("configs/pcrn_fc_centre_touchset_warmup_wide.yaml",
                                                "PCRN-FC+ from the centre-out scan + wide touch set, policy from step "
                                                "4000 (beyond the paper)"),
+    "pcrn_fc_centre_touchset_warmup_wide_std_decay": Row(
+        "configs/pcrn_fc_centre_touchset_warmup_wide_std_decay.yaml",
+        "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth "
+        "(beyond the paper)"),
 }
 
 # Table 1 of Riou et al. (ICASSP 2021): accuracy after k probes, 4 objects, held-out poses (no entry for k=1).

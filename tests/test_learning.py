@@ -104,6 +104,31 @@ def test_policy_warmup_trains_the_classifier_on_the_scan_and_leaves_the_policy_a
         HapticGlance(policy_warmup_steps=-1)
 
 
+def test_std_schedule_shrinks_the_policy_std_and_travels_with_the_checkpoint(data, tmp_path):
+    model = make_model(data, prior="line_scan", std_final_scale=0.1)
+    trainer = pl.Trainer(max_steps=4, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                         enable_model_summary=False, limit_val_batches=0, accelerator="cpu")
+    trainer.fit(model, datamodule=data)
+    scale = 1 - 0.9 * 3 / 4  # the last of steps 0..3
+    assert model.location.std_scale.item() == pytest.approx(scale)
+    state = torch.randn(16, model.location.start.numel())
+    _, sigma = model.location.distribution(state, torch.zeros(16, 4))
+    assert sigma.max().item() <= model.hparams.std_max * scale + 1e-6
+    path = tmp_path / "model.ckpt"
+    trainer.save_checkpoint(path)
+    assert HapticGlance.load_from_checkpoint(path, weights_only=False).location.std_scale.item() == pytest.approx(scale)
+    older = torch.load(path, weights_only=False)  # a checkpoint from before the schedule: its std scale was 1
+    del older["state_dict"]["location.std_scale"]
+    torch.save(older, path)
+    assert HapticGlance.load_from_checkpoint(path, weights_only=False).location.std_scale.item() == 1.0
+    with pytest.raises(ValueError, match="model.std_final_scale=0"):
+        HapticGlance(std_final_scale=0)
+    endless = make_model(data, std_final_scale=0.5)
+    with pytest.raises(ValueError, match="needs trainer.max_steps"):
+        pl.Trainer(max_epochs=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                   limit_val_batches=0, accelerator="cpu").fit(endless, datamodule=data)
+
+
 def test_policy_term_uses_detached_advantage():
     logits = torch.randn(5, 3, 4, requires_grad=True)
     labels = torch.randint(4, (5,))

@@ -100,12 +100,16 @@ class HapticGlance(pl.LightningModule):
                  prior: Literal["none", "line_scan"] = "none", scan_span: float = 1.0,
                  scan_order: Literal["sweep", "centre_out"] = "sweep", scan_lean: float = 0.0, scan_follow: float = 0.0,
                  point_frame: Literal["episode", "first_touch"] = "episode", touch_set: bool = False,
-                 touch_set_net: Literal["small", "wide"] = "small", policy_warmup_steps: int = 0) -> None:
+                 touch_set_net: Literal["small", "wide"] = "small", policy_warmup_steps: int = 0,
+                 std_final_scale: float = 1.0) -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
         if policy_warmup_steps < 0:
             raise ValueError(f"model.policy_warmup_steps={policy_warmup_steps}: must be >= 0")
+        if not 0.0 < std_final_scale <= 1.0:
+            raise ValueError(f"model.std_final_scale={std_final_scale}: must be in (0, 1] (the policy's std at the last "
+                             "training step, as a share of its learned value)")
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"model.gamma={gamma}: the discount must be in [0, 1]")
         self.save_hyperparameters()
@@ -270,7 +274,10 @@ class HapticGlance(pl.LightningModule):
             log_pi = self.location.log_prob(states, rollout.actions, offsets)
             baseline = self.baseline(states.detach())
         h = self.hparams
-        terms = hybrid_loss(logits, labels, log_pi, baseline, h.gamma, h.beta, h.normalize_advantage, h.reward)
+        # the gradient of log N grows as 1 / std: a shrinking std must not let the policy term crowd the others
+        # out of the clipped gradient
+        beta = h.beta * float(self.location.std_scale)
+        terms = hybrid_loss(logits, labels, log_pi, baseline, h.gamma, beta, h.normalize_advantage, h.reward)
         if log_pi is not None:
             with torch.no_grad():  # too large a std is the usual cause of poor accuracy: watch it
                 sigma = self.location.distribution(states, rollout.actions, offsets)[1].mean((0, 1))
@@ -282,6 +289,7 @@ class HapticGlance(pl.LightningModule):
         # beyond the paper: a learned policy may first leave the probing to the fixed scan (its prior), untrained,
         # so that the classifier learns on steady probes before the policy starts to move them
         warming_up = self.hparams.policy == "learned" and self.global_step < self.hparams.policy_warmup_steps
+        self.location.std_scale.fill_(self.std_schedule())
         rollout = self.rollout(labels, batch["poses"], int(batch["seed"]), follow_scan=warming_up)
         terms, _ = self.evaluate(rollout, labels, learn_policy=not warming_up)
         if not torch.isfinite(terms["loss"]):
@@ -292,6 +300,25 @@ class HapticGlance(pl.LightningModule):
         self.log("train/touch_rate", rollout.points[..., 3].mean(), batch_size=size)
         self.log("train/reach_rate", rollout.reached.float().mean(), batch_size=size)
         return terms["loss"]
+
+    def std_schedule(self) -> float:
+        """The factor on the policy's std at this step. Beyond the paper: it falls linearly from 1 when the policy
+        starts learning (after any warm-up) to `std_final_scale` at the last step, so that the policy explores
+        early and the classifier ends up trained behind the steady probes it is tested with."""
+        final = self.hparams.std_final_scale
+        if final == 1.0:
+            return 1.0
+        last, start = self.trainer.max_steps, self.hparams.policy_warmup_steps
+        if last is None or last < 0:
+            raise ValueError(f"model.std_final_scale={final} needs trainer.max_steps (the schedule ends there), "
+                             f"got trainer.max_steps={last}")
+        # a run that ends within the warm-up never trains the policy: it is tested at the final std
+        progress = min(max((self.global_step - start) / (last - start), 0.0), 1.0) if last > start else 1.0
+        return 1.0 + (final - 1.0) * progress
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        """Checkpoints written before the std schedule existed hold no std scale: theirs was 1."""
+        checkpoint["state_dict"].setdefault("location.std_scale", torch.ones(()))
 
     def _eval_step(self, batch: dict[str, Tensor], stage: str) -> dict[bool, tuple[Rollout, Tensor]]:
         """Single-rollout accuracy after each probe: the stochastic policy, and for a learned policy also the

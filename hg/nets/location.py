@@ -36,6 +36,9 @@ class LocationNetwork(nn.Module):
         if not 0 < std_floor < std_max:
             raise ValueError(f"LocationNetwork needs 0 < std_floor < std_max, got {std_floor=}, {std_max=}")
         self.action_dim, self.std_floor, self.std_max = action_dim, std_floor, std_max
+        # multiplies every std; a training schedule may shrink it (beyond the paper). A buffer, so that a checkpoint
+        # is tested with the std it was trained with
+        self.register_buffer("std_scale", torch.ones(()))
         self.start = nn.Parameter(torch.zeros(in_dim))  # state before the first probe (empty history)
         d_in = torch.cat([torch.zeros(in_dim, dtype=torch.long), torch.arange(1, action_dim + 1)])
         d_hidden = torch.arange(hidden) % action_dim
@@ -67,11 +70,12 @@ class LocationNetwork(nn.Module):
 
     def distribution(self, state: Tensor, action: Tensor, offset: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """(mu, sigma) of every component, (..., D), (..., A) -> (..., A) twice; masking lets mu_j, sigma_j
-        see only action[..., :j]. mu = tanh(.), sigma = std_floor + (std_max - std_floor) * sigmoid(.)."""
+        see only action[..., :j]. mu = tanh(.), sigma = (std_floor + (std_max - std_floor) * sigmoid(.)) * std_scale."""
         mu, pre_sigma = self.net(torch.cat([state, action], -1)).chunk(2, -1)
         if offset is not None:  # a prior request schedule, added before the tanh (beyond the paper)
             mu = mu + offset
-        return torch.tanh(mu), self.std_floor + (self.std_max - self.std_floor) * torch.sigmoid(pre_sigma)
+        sigma = self.std_floor + (self.std_max - self.std_floor) * torch.sigmoid(pre_sigma)
+        return torch.tanh(mu), sigma * self.std_scale
 
     def sample(
         self, state: Tensor, deterministic: bool = False, generator: torch.Generator | None = None,
