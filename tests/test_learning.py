@@ -244,6 +244,34 @@ def test_follow_scan_probes_around_the_touches_and_touches_more(data):
         HapticGlance(scan_follow=2.0)
 
 
+def test_cross_scan_leans_both_ways_at_its_first_touch_then_goes_on(data):
+    model = make_model(data, policy="line_scan", scan_span=0.5, scan_order="centre_out", scan_cross=1.0)
+    points = torch.zeros(2, 4, 4)  # episode 0 first touches at probe 1; episode 1 never touches
+    points[0, 0, 3] = points[0, 2, 3] = 1.0
+    requests = model.scan_requests(points)
+    scan = model.line_scan_requests()
+    lean = lambda side: torch.tensor([scan[0, 0], side, 0.0, 0.0])  # noqa: E731  uz = 1 - scan_cross
+    torch.testing.assert_close(requests[0], torch.stack([scan[0], lean(1.0), lean(-1.0), scan[1]]))
+    torch.testing.assert_close(requests[1], scan)  # nothing touched: the plain scan
+    causal = points.clone()
+    causal[:, 3, 3] = 1.0  # what the last probe returns cannot move any request
+    torch.testing.assert_close(model.scan_requests(causal), requests)
+    # on real ray casts: every episode touched before its last two probes leans both ways right after its first touch
+    batch = first_batch(data)
+    rollout = model.rollout(batch["labels"], batch["poses"], 0)
+    touched = rollout.points[..., 3] > 0.5
+    first = touched.float().argmax(1)
+    checked = [i for i in range(len(first)) if touched[i].any() and first[i] + 2 < model.hparams.n_probes]
+    assert checked
+    for i in checked:
+        assert rollout.requests[i, first[i] + 1, 1] == 1.0 and rollout.requests[i, first[i] + 2, 1] == -1.0
+    model.sim.close()
+    with pytest.raises(ValueError, match="model.scan_cross=3"):
+        HapticGlance(scan_cross=3.0)
+    with pytest.raises(ValueError, match="choose one way"):
+        HapticGlance(scan_cross=1.0, scan_follow=0.05)
+
+
 def test_eval_sets_are_fixed_and_disjoint_from_training():
     one = ProbeDataModule(mode="ideal", val_episodes=40, test_episodes=40, eval_batch_size=16, seed=1)
     two = ProbeDataModule(mode="ideal", val_episodes=40, test_episodes=40, eval_batch_size=16, seed=2)

@@ -99,6 +99,7 @@ class HapticGlance(pl.LightningModule):
                  reward: Literal["correct", "log_gain"] = "correct", policy_lr_scale: float = 1.0,
                  prior: Literal["none", "line_scan"] = "none", scan_span: float = 1.0,
                  scan_order: Literal["sweep", "centre_out"] = "sweep", scan_lean: float = 0.0, scan_follow: float = 0.0,
+                 scan_cross: float = 0.0,
                  point_frame: Literal["episode", "first_touch"] = "episode", touch_set: bool = False,
                  touch_set_net: Literal["small", "wide"] = "small", policy_warmup_steps: int = 0,
                  std_final_scale: float = 1.0) -> None:
@@ -146,6 +147,12 @@ class HapticGlance(pl.LightningModule):
         if not 0.0 <= scan_follow <= 1.0:
             raise ValueError(f"model.scan_follow={scan_follow}: must be in [0, 1] (a step along the probe line, "
                              "in request units; 0: no following)")
+        if not 0.0 <= scan_cross <= 2.0:
+            raise ValueError(f"model.scan_cross={scan_cross}: must be in [0, 2] (1 - uz of the cross-check probes; "
+                             "0: none)")
+        if scan_cross and scan_follow:
+            raise ValueError(f"model.scan_cross={scan_cross} and model.scan_follow={scan_follow}: choose one way for "
+                             "the scan to adapt to its first touch")
         if scan_order not in ("sweep", "centre_out"):
             raise ValueError(f"model.scan_order={scan_order!r}: expected 'sweep' or 'centre_out'")
         if prior not in ("none", "line_scan"):
@@ -188,17 +195,21 @@ class HapticGlance(pl.LightningModule):
         adapts: from the probe after an episode's first touch on, it probes around the mean y of the touches so
         far, `scan_follow` request units apart, alternating sides (+1, -1, +2, -2, ... steps), in the direction
         of the probe that touched first, because a scan that walks on past the object wastes its probes on bare
-        soil."""
+        soil. With `scan_cross`, the two probes after the first touch re-enter at its y leaning to +x and to -x,
+        then the scan goes on where it stopped: how the surface falls away across the line tells a ball from a
+        pipe crossing it, and a leaning probe reaches an object lying off the line."""
         scan = self.line_scan_requests().to(points.device).expand(len(points), -1, -1).clone()
+        n = scan.shape[1]
+        touched = (points[..., 3] > 0.5).float()
+        first = torch.where(touched.any(1), touched.argmax(1), torch.full_like(touched[:, 0], n, dtype=torch.long))
+        if self.hparams.scan_cross:
+            return self.cross_checked(scan, first)
         step = self.hparams.scan_follow
         if step == 0:
             return scan
-        n = scan.shape[1]
-        touched = (points[..., 3] > 0.5).float()
         before = torch.cumsum(touched, 1) - touched  # touches among probes 1..k-1, for request k
         y_sum = torch.cumsum(touched * points[..., 1], 1) - touched * points[..., 1]
         mean_py = self.sim.scene.line_request(y_sum / before.clamp(min=1) / self.hparams.point_scale)
-        first = torch.where(touched.any(1), touched.argmax(1), torch.full_like(touched[:, 0], n, dtype=torch.long))
         j = torch.arange(n, device=points.device) - first[:, None] - 1  # follow-up probe index, -1 at the first touch
         sides = torch.where(j % 2 == 0, j // 2 + 1, -(j // 2 + 1)).float()  # +1, -1, +2, -2, ...
         follow = (before > 0)[..., None]
@@ -207,6 +218,19 @@ class HapticGlance(pl.LightningModule):
         direction = scan.gather(1, first.clamp(max=n - 1)[:, None, None].expand(-1, n, 4))
         followed = torch.cat([(mean_py + step * sides).clamp(-1, 1)[..., None], direction[..., 1:]], -1)
         return torch.where(follow, followed, scan)
+
+    def cross_checked(self, scan: Tensor, first: Tensor) -> Tensor:
+        """(B, N, 4) scan with the cross-check probes inserted after each episode's first touch (index `first`,
+        N if none): request first + 1 leans to +x and first + 2 to -x at the touching probe's py; request k >
+        first + 2 is the scan's request k - 2."""
+        n, lean = scan.shape[1], self.hparams.scan_cross
+        k = torch.arange(n, device=scan.device).expand(len(first), n)
+        offset = (k - first[:, None]).clamp(0, 3)  # 0: up to the touch, 1 and 2: the cross-checks, 3: after them
+        shifted = scan.gather(1, torch.where(offset == 3, k - 2, k)[..., None].expand(-1, -1, 4))
+        py = scan[..., 0].gather(1, first.clamp(max=n - 1)[:, None]).expand(-1, n)
+        ux = torch.where(offset == 1, 1.0, -1.0)
+        cross = torch.stack([py, ux, torch.zeros_like(py), torch.full_like(py, 1.0 - lean)], -1)
+        return torch.where(((offset == 1) | (offset == 2))[..., None], cross, shifted)
 
     def line_scan_requests(self) -> Tensor:
         """(N, 4): probes evenly spaced over the middle `scan_span` of the probe line, swept from one end (the
