@@ -2,8 +2,8 @@
 
 A classifier can only name an object it has touched, so the touches a scan collects, and how early, bound what
 the line-scan baselines and the policies started from them (`model.prior: line_scan`) can reach. For each fixed
-scan (`model.scan_span` x `model.scan_order` x `model.scan_lean` x `model.scan_follow` x `model.scan_cross`, as
-in `HapticGlance.scan_requests`) and
+scan (`model.scan_span` x `model.scan_order` x `model.scan_lean` x `model.scan_follow` x `model.scan_cross` x
+`model.scan_reach`, as in `HapticGlance.scan_requests`) and
 for each checkpoint's mean-action policy (`--ckpt`), on the same episodes of a pose split: mean touches per
 episode after all probes and after half of them, the share of episodes with at least one touch, and the mean
 tilt of the requests from vertical. For a checkpoint also its accuracy after all probes on those rollouts,
@@ -21,10 +21,11 @@ whether a target is out of reach of a kind of scan. Minutes per scan for 16384 e
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --leans 0 0.4 --episodes 2048   # the fanned scan
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --follows 0 0.05     # the scan following the touches
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --crosses 0 1     # cross-checking its first touch
+    .venv/bin/python scripts/scan_coverage.py --spans 0.5 --reaches 0 1     # leaning while it touches nothing
     .venv/bin/python scripts/scan_coverage.py --ckpt runs/table1/pcrn_fc_plus-seed0/checkpoints/best-step7500.ckpt
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --fit 16384 --episodes 4096   # what the scan can say
 
-Last line: JSON {"<order>-span<span>[-lean<lean>][-follow<follow>][-cross<cross>]" or "<checkpoint>": {"touches": ..,
+Last line: JSON {"<order>-span<span>[-lean<lean>][-follow<follow>][-cross<cross>][-reach<reach>]" or "<checkpoint>": {"touches": ..,
 "touches_first_half": .., "any_touch": .., "tilt_deg": ..[, "fit_accuracy": ..][, "accuracy": .., "by_touches":
 {"0-1": {"share": .., "accuracy": ..}, ...}, "by_offset_cm": {"0-5": {...}, "5-10": .., "10+": ..}]}, ...}.
 """
@@ -152,6 +153,8 @@ def main() -> None:
                         help="model.scan_follow values (0: the scan ignores its touches)")
     parser.add_argument("--crosses", type=float, nargs="+", default=[0.0],
                         help="model.scan_cross values (0: no leaning probes after the first touch)")
+    parser.add_argument("--reaches", type=float, nargs="+", default=[0.0],
+                        help="model.scan_reach values (0: no leaning probes while nothing is touched)")
     parser.add_argument("--ckpt", type=Path, nargs="*", default=[], help="checkpoints whose policies to measure too")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--fit", type=int, default=0, metavar="EPISODES",
@@ -163,11 +166,12 @@ def main() -> None:
     torch.set_num_threads(1)
 
     scans = {f"{order}-span{span:g}" + (f"-lean{lean:g}" if lean else "") + (f"-follow{follow:g}" if follow else "")
-             + (f"-cross{cross:g}" if cross else ""):
+             + (f"-cross{cross:g}" if cross else "") + (f"-reach{reach:g}" if reach else ""):
              HapticGlance(n_probes=args.n_probes, policy="line_scan", scan_span=span, scan_order=order, scan_lean=lean,
-                          scan_follow=follow, scan_cross=cross)
+                          scan_follow=follow, scan_cross=cross, scan_reach=reach)
              for order in args.orders for span in args.spans for lean in args.leans
-             for follow in args.follows for cross in args.crosses if not (follow and cross)}
+             for follow in args.follows for cross in args.crosses for reach in args.reaches
+             if sum(map(bool, (follow or lean, cross, reach))) <= 1}
     models = dict(scans)
     for path in args.ckpt:
         if not path.is_file():

@@ -272,6 +272,33 @@ def test_cross_scan_leans_both_ways_at_its_first_touch_then_goes_on(data):
         HapticGlance(scan_cross=1.0, scan_follow=0.05)
 
 
+def test_reach_scan_leans_while_it_touches_nothing_then_keeps_the_touching_direction(data):
+    model = HapticGlance(n_probes=6, policy="line_scan", scan_span=0.5, scan_order="centre_out", scan_reach=0.6)
+    points = torch.zeros(3, 6, 4)  # episode 0 first touches at probe 4 (leaning to -x), 1 never, 2 at probe 2 (straight)
+    points[0, 3, 3] = points[0, 4, 3] = points[2, 1, 3] = 1.0
+    requests = model.scan_requests(points)
+    torch.testing.assert_close(requests[..., 0], model.line_scan_requests()[:, 0].expand(3, -1))  # same places
+    torch.testing.assert_close(requests[..., 1], torch.tensor([[0.0, 0, 1, -1, -1, -1], [0, 0, 1, -1, 1, -1],
+                                                              [0, 0, 0, 0, 0, 0]]))
+    torch.testing.assert_close(requests[..., 3], torch.where(requests[..., 1] == 0, 1.0, 0.4))
+    causal = points.clone()
+    causal[:, 5, 3] = 1.0  # what the last probe returns cannot move any request
+    torch.testing.assert_close(model.scan_requests(causal), requests)
+    model = make_model(data, policy="line_scan", scan_span=0.5, scan_order="centre_out", scan_reach=0.6)
+    batch = first_batch(data)  # on real ray casts (4 probes: the first goes straight down)
+    rollout = model.rollout(batch["labels"], batch["poses"], 0)
+    touched = rollout.points[..., 3] > 0.5
+    for i in range(len(touched)):
+        first = int(touched[i].float().argmax()) if touched[i].any() else 4
+        lean = [0.0] + [1.0 if min(k, first) % 2 else -1.0 if min(k, first) else 0.0 for k in range(1, 4)]
+        assert rollout.requests[i, :, 1].tolist() == lean
+    model.sim.close()
+    with pytest.raises(ValueError, match="model.scan_reach=3"):
+        HapticGlance(scan_reach=3.0)
+    with pytest.raises(ValueError, match="choose one way"):
+        HapticGlance(scan_reach=1.0, scan_lean=0.4)
+
+
 def test_eval_sets_are_fixed_and_disjoint_from_training():
     one = ProbeDataModule(mode="ideal", val_episodes=40, test_episodes=40, eval_batch_size=16, seed=1)
     two = ProbeDataModule(mode="ideal", val_episodes=40, test_episodes=40, eval_batch_size=16, seed=2)

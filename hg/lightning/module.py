@@ -99,7 +99,7 @@ class HapticGlance(pl.LightningModule):
                  reward: Literal["correct", "log_gain"] = "correct", policy_lr_scale: float = 1.0,
                  prior: Literal["none", "line_scan"] = "none", scan_span: float = 1.0,
                  scan_order: Literal["sweep", "centre_out"] = "sweep", scan_lean: float = 0.0, scan_follow: float = 0.0,
-                 scan_cross: float = 0.0,
+                 scan_cross: float = 0.0, scan_reach: float = 0.0,
                  point_frame: Literal["episode", "first_touch"] = "episode", touch_set: bool = False,
                  touch_set_net: Literal["small", "wide"] = "small", policy_warmup_steps: int = 0,
                  std_final_scale: float = 1.0) -> None:
@@ -150,9 +150,14 @@ class HapticGlance(pl.LightningModule):
         if not 0.0 <= scan_cross <= 2.0:
             raise ValueError(f"model.scan_cross={scan_cross}: must be in [0, 2] (1 - uz of the cross-check probes; "
                              "0: none)")
-        if scan_cross and scan_follow:
-            raise ValueError(f"model.scan_cross={scan_cross} and model.scan_follow={scan_follow}: choose one way for "
-                             "the scan to adapt to its first touch")
+        if not 0.0 <= scan_reach <= 2.0:
+            raise ValueError(f"model.scan_reach={scan_reach}: must be in [0, 2] (1 - uz of the reaching probes; "
+                             "0: none)")
+        adapting = {name: value for name, value in (("scan_follow", scan_follow), ("scan_cross", scan_cross),
+                                                    ("scan_reach", scan_reach), ("scan_lean", scan_lean)) if value}
+        if len(adapting) > 1 and set(adapting) != {"scan_follow", "scan_lean"}:  # a fan may be followed, no more
+            raise ValueError(f"model.{', model.'.join(f'{k}={v}' for k, v in adapting.items())}: choose one way for "
+                             "the scan to adapt (only scan_follow and scan_lean combine)")
         if scan_order not in ("sweep", "centre_out"):
             raise ValueError(f"model.scan_order={scan_order!r}: expected 'sweep' or 'centre_out'")
         if prior not in ("none", "line_scan"):
@@ -197,13 +202,17 @@ class HapticGlance(pl.LightningModule):
         of the probe that touched first, because a scan that walks on past the object wastes its probes on bare
         soil. With `scan_cross`, the two probes after the first touch re-enter at its y leaning to +x and to -x,
         then the scan goes on where it stopped: how the surface falls away across the line tells a ball from a
-        pipe crossing it, and a leaning probe reaches an object lying off the line."""
+        pipe crossing it, and a leaning probe reaches an object lying off the line. With `scan_reach`, the scan
+        goes straight down for its first third; then, while nothing is touched, it leans to +x and -x in turn
+        (it may lie off the line), and once something is, it keeps the direction of the probe that first touched."""
         scan = self.line_scan_requests().to(points.device).expand(len(points), -1, -1).clone()
         n = scan.shape[1]
         touched = (points[..., 3] > 0.5).float()
         first = torch.where(touched.any(1), touched.argmax(1), torch.full_like(touched[:, 0], n, dtype=torch.long))
         if self.hparams.scan_cross:
             return self.cross_checked(scan, first)
+        if self.hparams.scan_reach:
+            return self.reaching(scan, first)
         step = self.hparams.scan_follow
         if step == 0:
             return scan
@@ -231,6 +240,17 @@ class HapticGlance(pl.LightningModule):
         ux = torch.where(offset == 1, 1.0, -1.0)
         cross = torch.stack([py, ux, torch.zeros_like(py), torch.full_like(py, 1.0 - lean)], -1)
         return torch.where(((offset == 1) | (offset == 2))[..., None], cross, shifted)
+
+    def reaching(self, scan: Tensor, first: Tensor) -> Tensor:
+        """(B, N, 4) straight scan whose probes from N // 3 on lean to +x and -x in turn until a probe touches
+        (index `first`, N if none); from then on they keep the touching probe's direction."""
+        n, straight = scan.shape[1], scan.shape[1] // 3
+        k = torch.arange(n, device=scan.device).expand(len(first), n)
+        g = torch.minimum(k, first[:, None])  # the probe whose direction request k takes: itself until a touch
+        leaning = g >= straight
+        ux = torch.where(leaning, torch.where((g - straight) % 2 == 0, 1.0, -1.0), 0.0)
+        uz = torch.where(leaning, 1.0 - self.hparams.scan_reach, 1.0)
+        return torch.stack([scan[..., 0], ux, torch.zeros_like(ux), uz], -1)
 
     def line_scan_requests(self) -> Tensor:
         """(N, 4): probes evenly spaced over the middle `scan_span` of the probe line, swept from one end (the
