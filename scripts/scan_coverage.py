@@ -25,9 +25,10 @@ whether a target is out of reach of a kind of scan. Minutes per scan for 16384 e
     .venv/bin/python scripts/scan_coverage.py --ckpt runs/table1/pcrn_fc_plus-seed0/checkpoints/best-step7500.ckpt
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --fit 16384 --episodes 4096   # what the scan can say
 
-Last line: JSON {"<order>-span<span>[-lean<lean>][-follow<follow>][-cross<cross>][-reach<reach>]" or "<checkpoint>": {"touches": ..,
-"touches_first_half": .., "any_touch": .., "tilt_deg": ..[, "fit_accuracy": ..][, "accuracy": .., "by_touches":
-{"0-1": {"share": .., "accuracy": ..}, ...}, "by_offset_cm": {"0-5": {...}, "5-10": .., "10+": ..}]}, ...}.
+Last line: JSON {"<order>-span<span>[-lean<lean>][-follow<follow>][-cross<cross>][-reach<reach>]" or "<checkpoint>":
+{"touches": .., "touches_first_half": .., "any_touch": .., "tilt_deg": ..[, "fit_accuracy": ..][, "accuracy": ..,
+"by_touches": {"0-1": {"share": .., "accuracy": ..}, ...}, "by_offset_cm": {"0-5": {...}, "5-10": .., "10+": ..}]},
+...}.
 """
 from __future__ import annotations
 

@@ -274,7 +274,7 @@ def test_cross_scan_leans_both_ways_at_its_first_touch_then_goes_on(data):
 
 def test_reach_scan_leans_while_it_touches_nothing_then_keeps_the_touching_direction(data):
     model = HapticGlance(n_probes=6, policy="line_scan", scan_span=0.5, scan_order="centre_out", scan_reach=0.6)
-    points = torch.zeros(3, 6, 4)  # episode 0 first touches at probe 4 (leaning to -x), 1 never, 2 at probe 2 (straight)
+    points = torch.zeros(3, 6, 4)  # episode 0 first touches at probe 4 (leaning to -x), 1 never, 2 at probe 2
     points[0, 3, 3] = points[0, 4, 3] = points[2, 1, 3] = 1.0
     requests = model.scan_requests(points)
     torch.testing.assert_close(requests[..., 0], model.line_scan_requests()[:, 0].expand(3, -1))  # same places

@@ -109,8 +109,8 @@ class HapticGlance(pl.LightningModule):
         if policy_warmup_steps < 0:
             raise ValueError(f"model.policy_warmup_steps={policy_warmup_steps}: must be >= 0")
         if not 0.0 < std_final_scale <= 1.0:
-            raise ValueError(f"model.std_final_scale={std_final_scale}: must be in (0, 1] (the policy's std at the last "
-                             "training step, as a share of its learned value)")
+            raise ValueError(f"model.std_final_scale={std_final_scale}: must be in (0, 1] (the policy's std at the "
+                             "last training step, as a share of its learned value)")
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"model.gamma={gamma}: the discount must be in [0, 1]")
         self.save_hyperparameters()
