@@ -13,8 +13,8 @@ object lies off the probe line. Seconds on one core.
 With `--fit EPISODES`, also how much a fixed scan's probes can say about the class: a PointNet (hg/nets, with
 BatchNorm and dropout; or `--fit-net touch_set`, the model's touch-set classifier) trained supervised on the
 scan's probes in EPISODES training-split episodes, each probe as (X, Y, Z relative to the mean of the touched
-points, T), and scored after its last epoch on the episodes above. It does not depend on the policy being learned or on the classifier keeping up with it, so it tells
-whether a target is out of reach of a kind of scan. Minutes per scan for 16384 episodes.
+points, T), and scored after its last epoch on the episodes above. It does not depend on the policy being
+learned or on the classifier keeping up with it, so it tells whether a target is out of reach of a kind of scan. Minutes per scan for 16384 episodes.
 
     .venv/bin/python scripts/scan_coverage.py                        # 512 val episodes, ideal mode
     .venv/bin/python scripts/scan_coverage.py --mode arm --split test
@@ -43,7 +43,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from hg.lightning.module import HapticGlance  # noqa: E402
+from hg.lightning.module import HapticGlance, scan_options_combine  # noqa: E402
 from hg.nets.pointcloud import PointNet, TouchSetClassifier  # noqa: E402
 from hg.provenance import repo_path  # noqa: E402
 from hg.sim import PoseRegions, ProbeSimulator, sample_episodes  # noqa: E402
@@ -172,7 +172,7 @@ def main() -> None:
                           scan_follow=follow, scan_cross=cross, scan_reach=reach)
              for order in args.orders for span in args.spans for lean in args.leans
              for follow in args.follows for cross in args.crosses for reach in args.reaches
-             if sum(map(bool, (follow or lean, cross, reach))) <= 1}
+             if scan_options_combine(lean, follow, cross, reach)}
     models = dict(scans)
     for path in args.ckpt:
         if not path.is_file():

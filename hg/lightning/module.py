@@ -73,6 +73,12 @@ def hybrid_loss(logits: Tensor, labels: Tensor, log_pi: Tensor | None, baseline:
     return terms
 
 
+def scan_options_combine(lean: float, follow: float, cross: float, reach: float) -> bool:
+    """Whether these fixed-scan options (model.scan_lean, _follow, _cross, _reach; 0: off) may be set together: a
+    fanned scan may follow its touches, but the cross-checking and the reaching scans each stand alone."""
+    return sum(map(bool, (lean or follow, cross, reach))) <= 1
+
+
 @dataclass
 class Rollout:
     """N probes of B episodes: what the policy asked for and what the sensor returned."""
@@ -153,11 +159,10 @@ class HapticGlance(pl.LightningModule):
         if not 0.0 <= scan_reach <= 2.0:
             raise ValueError(f"model.scan_reach={scan_reach}: must be in [0, 2] (1 - uz of the reaching probes; "
                              "0: none)")
-        adapting = {name: value for name, value in (("scan_follow", scan_follow), ("scan_cross", scan_cross),
-                                                    ("scan_reach", scan_reach), ("scan_lean", scan_lean)) if value}
-        if len(adapting) > 1 and set(adapting) != {"scan_follow", "scan_lean"}:  # a fan may be followed, no more
-            raise ValueError(f"model.{', model.'.join(f'{k}={v}' for k, v in adapting.items())}: choose one way for "
-                             "the scan to adapt (only scan_follow and scan_lean combine)")
+        if not scan_options_combine(scan_lean, scan_follow, scan_cross, scan_reach):
+            raise ValueError(f"model.scan_lean={scan_lean}, model.scan_follow={scan_follow}, model.scan_cross="
+                             f"{scan_cross}, model.scan_reach={scan_reach}: choose one way for the scan to adapt "
+                             "(only scan_follow and scan_lean combine)")
         if scan_order not in ("sweep", "centre_out"):
             raise ValueError(f"model.scan_order={scan_order!r}: expected 'sweep' or 'centre_out'")
         if prior not in ("none", "line_scan"):
@@ -206,16 +211,17 @@ class HapticGlance(pl.LightningModule):
         goes straight down for its first third; then, while nothing is touched, it leans to +x and -x in turn
         (it may lie off the line), and once something is, it keeps the direction of the probe that first touched."""
         scan = self.line_scan_requests().to(points.device).expand(len(points), -1, -1).clone()
+        h = self.hparams
+        if not (h.scan_follow or h.scan_cross or h.scan_reach):  # the plain scan, called at every probe: no more work
+            return scan
         n = scan.shape[1]
         touched = (points[..., 3] > 0.5).float()
         first = torch.where(touched.any(1), touched.argmax(1), torch.full_like(touched[:, 0], n, dtype=torch.long))
-        if self.hparams.scan_cross:
+        if h.scan_cross:
             return self.cross_checked(scan, first)
-        if self.hparams.scan_reach:
+        if h.scan_reach:
             return self.reaching(scan, first)
-        step = self.hparams.scan_follow
-        if step == 0:
-            return scan
+        step = h.scan_follow
         before = torch.cumsum(touched, 1) - touched  # touches among probes 1..k-1, for request k
         y_sum = torch.cumsum(touched * points[..., 1], 1) - touched * points[..., 1]
         mean_py = self.sim.scene.line_request(y_sum / before.clamp(min=1) / self.hparams.point_scale)
