@@ -16,6 +16,11 @@ scan's probes in EPISODES training-split episodes, each probe as (X, Y, Z relati
 points, T), and scored after its last epoch on the episodes above. It does not depend on the policy being
 learned or on the classifier keeping up with it, so it tells whether a target is out of reach of a kind of scan. Minutes per scan for 16384 episodes.
 
+With `--aims`, also the scan aimed by an oracle that reads the object's pose: every probe leans across the line
+towards the object's centre, by a fixed lean (a number, in request units as `model.scan_lean`) or by exactly the
+lean that takes it under the centre (`exact`). Not a policy: a bound on what a policy that picks the side (and
+the lean) of each probe from what it touched could reach with the same scan.
+
     .venv/bin/python scripts/scan_coverage.py                        # 512 val episodes, ideal mode
     .venv/bin/python scripts/scan_coverage.py --mode arm --split test
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --leans 0 0.4 --episodes 2048   # the fanned scan
@@ -24,8 +29,10 @@ learned or on the classifier keeping up with it, so it tells whether a target is
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --reaches 0 1     # leaning while it touches nothing
     .venv/bin/python scripts/scan_coverage.py --ckpt runs/table1/pcrn_fc_plus-seed0/checkpoints/best-step7500.ckpt
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --fit 16384 --episodes 4096   # what the scan can say
+    .venv/bin/python scripts/scan_coverage.py --spans 0.5 --aims 0 0.6 exact --fit 16384   # ... aimed by an oracle
 
-Last line: JSON {"<order>-span<span>[-lean<lean>][-follow<follow>][-cross<cross>][-reach<reach>]" or "<checkpoint>":
+Last line: JSON {"<order>-span<span>[-lean<lean>][-follow<follow>][-cross<cross>][-reach<reach>][-aim<aim>]" or
+"<checkpoint>":
 {"touches": .., "touches_first_half": .., "any_touch": .., "tilt_deg": ..[, "fit_accuracy": ..][, "accuracy": ..,
 "by_touches": {"0-1": {"share": .., "accuracy": ..}, ...}, "by_offset_cm": {"0-5": {...}, "5-10": .., "10+": ..}]},
 ...}.
@@ -66,6 +73,34 @@ def policy_probes(model: HapticGlance, sim: ProbeSimulator, labels: np.ndarray, 
     requests = rollout.requests.double().numpy()
     directions = sim.scene.request_to_probe(requests.reshape(-1, 4))[1]
     return rollout.points, directions.reshape(*requests.shape[:2], 3), correct
+
+
+class OracleAimedScan(HapticGlance):
+    """The fixed scan with every probe leaning across the line (x) towards the object's centre, read from the
+    pose: by `aim` request units (the side from the oracle), or, with aim "exact", by the lean whose probe passes
+    under the line at the centre's (X, Z), so the probes profile the object through its middle wherever it lies."""
+
+    def __init__(self, aim: str, **scan) -> None:
+        super().__init__(**scan)
+        self.aim = aim
+
+    def rollout(self, labels: torch.Tensor, poses: torch.Tensor, seed: int, deterministic: bool = False,
+                follow_scan: bool = False):
+        scene = self.sim.scene
+        off, depth = poses[:, 0].double() - scene.probe_x, -poses[:, 2].double()
+        if self.aim == "exact":  # tan(tilt) = tan(max_tilt) |ux| when uy = 0, uz = -1 (request_to_probe)
+            self.lean = (off / depth / np.tan(np.radians(scene.max_tilt_deg))).clamp(-1, 1).float()
+        else:
+            self.lean = float(self.aim) * torch.sign(off).float()
+        return super().rollout(labels, poses, seed, deterministic, follow_scan)
+
+    def next_actions(self, *args, **kwargs) -> torch.Tensor:
+        action = super().next_actions(*args, **kwargs).clone()
+        if self.aim == "exact":
+            action[:, 1:] = torch.stack([self.lean, torch.zeros_like(self.lean), -torch.ones_like(self.lean)], -1)
+        else:  # as model.scan_lean: ux the lean, uy 0, uz 0 (half the tilt range)
+            action[:, 1:] = torch.stack([self.lean, torch.zeros_like(self.lean), torch.zeros_like(self.lean)], -1)
+        return action
 
 
 def touch_frame(points: torch.Tensor, scale: float = 5.0) -> torch.Tensor:
@@ -140,6 +175,18 @@ def coverage(touches: np.ndarray, directions: np.ndarray) -> dict[str, float]:
             "tilt_deg": round(float(tilt.mean()), 1)}
 
 
+def _is_number(text: str) -> bool:
+    try:
+        return float(text) == float(text)
+    except ValueError:
+        return False
+
+
+def scan_model(aim: str, **scan) -> HapticGlance:
+    """The fixed scan of these options, aimed by the oracle unless aim is "0"."""
+    return HapticGlance(**scan) if aim == "0" else OracleAimedScan(aim, **scan)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", type=int, default=512)
@@ -156,6 +203,8 @@ def main() -> None:
                         help="model.scan_cross values (0: no leaning probes after the first touch)")
     parser.add_argument("--reaches", type=float, nargs="+", default=[0.0],
                         help="model.scan_reach values (0: no leaning probes while nothing is touched)")
+    parser.add_argument("--aims", nargs="+", default=["0"],
+                        help="oracle leans towards the object's centre: request units, or 'exact' (0: no oracle)")
     parser.add_argument("--ckpt", type=Path, nargs="*", default=[], help="checkpoints whose policies to measure too")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--fit", type=int, default=0, metavar="EPISODES",
@@ -164,15 +213,19 @@ def main() -> None:
     parser.add_argument("--fit-net", choices=["pointnet", "touch_set"], default="pointnet",
                         help="the classifier --fit trains: a PointNet, or the model's touch-set classifier")
     args = parser.parse_args()
+    for aim in args.aims:
+        if aim != "exact" and not _is_number(aim):
+            parser.error(f"--aims: {aim!r} is neither a number nor 'exact'")
     torch.set_num_threads(1)
 
     scans = {f"{order}-span{span:g}" + (f"-lean{lean:g}" if lean else "") + (f"-follow{follow:g}" if follow else "")
-             + (f"-cross{cross:g}" if cross else "") + (f"-reach{reach:g}" if reach else ""):
-             HapticGlance(n_probes=args.n_probes, policy="line_scan", scan_span=span, scan_order=order, scan_lean=lean,
-                          scan_follow=follow, scan_cross=cross, scan_reach=reach)
+             + (f"-cross{cross:g}" if cross else "") + (f"-reach{reach:g}" if reach else "")
+             + (f"-aim{aim}" if aim != "0" else ""):
+             scan_model(aim, n_probes=args.n_probes, policy="line_scan", scan_span=span, scan_order=order,
+                        scan_lean=lean, scan_follow=follow, scan_cross=cross, scan_reach=reach)
              for order in args.orders for span in args.spans for lean in args.leans
-             for follow in args.follows for cross in args.crosses for reach in args.reaches
-             if scan_options_combine(lean, follow, cross, reach)}
+             for follow in args.follows for cross in args.crosses for reach in args.reaches for aim in args.aims
+             if scan_options_combine(lean, follow, cross, reach) and (aim == "0" or not (lean or cross or reach))}
     models = dict(scans)
     for path in args.ckpt:
         if not path.is_file():

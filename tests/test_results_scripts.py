@@ -141,3 +141,29 @@ def test_noise_baseline_runs_and_merges_and_ours_needs_the_table(tmp_path):
     assert second.returncode == 0 and "accuracy" not in second.stdout.splitlines()[0]  # nothing retrained
     ours = run("reproduce_noise", "--models", "ours", "--out", str(tmp_path))
     assert ours.returncode != 0 and "table1.json" in ours.stderr and "reproduce_table1.py" in ours.stderr
+
+
+def test_oracle_aimed_scan_passes_under_the_object_centre_or_leans_towards_it():
+    import numpy as np
+
+    from hg.sim import PoseRegions, ProbeSimulator, sample_episodes
+
+    coverage = script("scan_coverage")
+    sim = ProbeSimulator("hg4", batch_size=16, mode="ideal", seed=0)
+    labels, poses = sample_episodes(PoseRegions(sim.scene), "val", 16, 4, np.random.default_rng(0))
+    scan = dict(n_probes=4, policy="line_scan", scan_span=0.5, scan_order="centre_out")
+    plain = coverage.policy_probes(coverage.scan_model("0", **scan), sim, labels, poses)[1]
+    exact_model = coverage.scan_model("exact", **scan)
+    exact = coverage.policy_probes(exact_model, sim, labels, poses)[1]
+    fixed = coverage.policy_probes(coverage.scan_model("0.6", **scan), sim, labels, poses)[1]
+    sim.close()
+    assert isinstance(exact_model, coverage.OracleAimedScan) and np.allclose(plain[..., :2], 0)
+    # each exact probe, entering on the line (x = probe_x), is at the object's centre x at its centre depth
+    depth = -poses[:, 2][:, None]
+    x_at_depth = sim.scene.probe_x + depth * exact[..., 0] / -exact[..., 2]
+    assert np.allclose(x_at_depth, poses[:, 0][:, None], atol=1e-4) and np.allclose(exact[..., 1], 0)
+    # a fixed lean: the same tilt for every probe, to the side the object lies on
+    side = np.sign(poses[:, 0] - sim.scene.probe_x)[:, None]
+    assert (np.sign(fixed[..., 0]) == side).all() and np.allclose(np.abs(fixed[..., 0]), abs(fixed[0, 0, 0]))
+    bad = run("scan_coverage", "--aims", "left")
+    assert bad.returncode != 0 and "--aims: 'left'" in bad.stderr
