@@ -78,6 +78,10 @@ ROWS = {
         "configs/pcrn_fc_centre_touchset_warmup_wide_std_decay.yaml",
         "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth "
         "(beyond the paper)"),
+    "pcrn_fc_centre_touchset_warmup_wide_std_decay_lean": Row(
+        "configs/pcrn_fc_centre_touchset_warmup_wide_std_decay_lean.yaml",
+        "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth, room "
+        "to lean in the prior (beyond the paper)"),
     "pcrn_fc_centre_touchset_warmup_wide_std_decay_long": Row(
         "configs/pcrn_fc_centre_touchset_warmup_wide_std_decay_long.yaml",
         "PCRN-FC+ from the centre-out scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "

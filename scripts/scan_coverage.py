@@ -3,7 +3,7 @@
 A classifier can only name an object it has touched, so the touches a scan collects, and how early, bound what
 the line-scan baselines and the policies started from them (`model.prior: line_scan`) can reach. For each fixed
 scan (`model.scan_span` x `model.scan_order` x `model.scan_lean` x `model.scan_follow` x `model.scan_cross` x
-`model.scan_reach`, as in `HapticGlance.scan_requests`) and
+`model.scan_reach` x `model.scan_side`, as in `HapticGlance.scan_requests`) and
 for each checkpoint's mean-action policy (`--ckpt`), on the same episodes of a pose split: mean touches per
 episode after all probes and after half of them, the share of episodes with at least one touch, and the mean
 tilt of the requests from vertical. For a checkpoint also its accuracy after all probes on those rollouts,
@@ -27,11 +27,13 @@ the lean) of each probe from what it touched could reach with the same scan.
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --follows 0 0.05     # the scan following the touches
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --crosses 0 1     # cross-checking its first touch
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --reaches 0 1     # leaning while it touches nothing
+    .venv/bin/python scripts/scan_coverage.py --spans 0.5 --sides 0 0.6     # leaning to the side it found
     .venv/bin/python scripts/scan_coverage.py --ckpt runs/table1/pcrn_fc_plus-seed0/checkpoints/best-step7500.ckpt
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --fit 16384 --episodes 4096   # what the scan can say
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --aims 0 0.6 exact --fit 16384   # ... aimed by an oracle
 
-Last line: JSON {"<order>-span<span>[-lean<lean>][-follow<follow>][-cross<cross>][-reach<reach>][-aim<aim>]" or
+Last line: JSON {"<order>-span<span>[-lean<lean>][-follow<follow>][-cross<cross>][-reach<reach>][-side<side>][-aim<aim>]"
+or
 "<checkpoint>":
 {"touches": .., "touches_first_half": .., "any_touch": .., "tilt_deg": ..[, "fit_accuracy": ..][, "accuracy": ..,
 "by_touches": {"0-1": {"share": .., "accuracy": ..}, ...}, "by_offset_cm": {"0-5": {...}, "5-10": .., "10+": ..}]},
@@ -203,6 +205,8 @@ def main() -> None:
                         help="model.scan_cross values (0: no leaning probes after the first touch)")
     parser.add_argument("--reaches", type=float, nargs="+", default=[0.0],
                         help="model.scan_reach values (0: no leaning probes while nothing is touched)")
+    parser.add_argument("--sides", type=float, nargs="+", default=[0.0],
+                        help="model.scan_side values (0: no side-picking)")
     parser.add_argument("--aims", nargs="+", default=["0"],
                         help="oracle leans towards the object's centre: request units, or 'exact' (0: no oracle)")
     parser.add_argument("--ckpt", type=Path, nargs="*", default=[], help="checkpoints whose policies to measure too")
@@ -220,12 +224,13 @@ def main() -> None:
 
     scans = {f"{order}-span{span:g}" + (f"-lean{lean:g}" if lean else "") + (f"-follow{follow:g}" if follow else "")
              + (f"-cross{cross:g}" if cross else "") + (f"-reach{reach:g}" if reach else "")
-             + (f"-aim{aim}" if aim != "0" else ""):
+             + (f"-side{side:g}" if side else "") + (f"-aim{aim}" if aim != "0" else ""):
              scan_model(aim, n_probes=args.n_probes, policy="line_scan", scan_span=span, scan_order=order,
-                        scan_lean=lean, scan_follow=follow, scan_cross=cross, scan_reach=reach)
-             for order in args.orders for span in args.spans for lean in args.leans
-             for follow in args.follows for cross in args.crosses for reach in args.reaches for aim in args.aims
-             if scan_options_combine(lean, follow, cross, reach) and (aim == "0" or not (lean or cross or reach))}
+                        scan_lean=lean, scan_follow=follow, scan_cross=cross, scan_reach=reach, scan_side=side)
+             for order in args.orders for span in args.spans for lean in args.leans for follow in args.follows
+             for cross in args.crosses for reach in args.reaches for side in args.sides for aim in args.aims
+             if scan_options_combine(lean, follow, cross, reach, side)
+             and (aim == "0" or not (lean or cross or reach or side))}
     models = dict(scans)
     for path in args.ckpt:
         if not path.is_file():

@@ -299,6 +299,59 @@ def test_reach_scan_leans_while_it_touches_nothing_then_keeps_the_touching_direc
         HapticGlance(scan_reach=1.0, scan_lean=0.4)
 
 
+def test_prior_lean_lets_a_small_ux_tilt_the_prior_s_straight_probes():
+    scan = dict(n_probes=4, prior="line_scan", scan_span=0.5, scan_order="centre_out", scan_lean=0.4)
+    plain, room = HapticGlance(**scan), HapticGlance(**scan, prior_lean=1.0)
+    points = torch.zeros(2, 4, 4)
+    a, b = plain.prior_offsets(points), room.prior_offsets(points)
+    straight = plain.line_scan_requests()[:, 1] == 0
+    torch.testing.assert_close(b[..., :3], a[..., :3])
+    assert (b[:, straight, 3] == 0).all() and (b[:, ~straight, 3] == a[:, ~straight, 3]).all()  # uz 0; fan kept
+
+    def tilt(offsets: torch.Tensor, ux: float) -> np.ndarray:
+        requests = torch.tanh(offsets[0]).double()
+        requests[:, 1] += ux * straight
+        return np.degrees(np.arccos(-Scene().request_to_probe(requests.numpy())[1][:, 2]))[straight.numpy()]
+
+    np.testing.assert_allclose(tilt(b, 0.0), 0.0, atol=1e-6)  # the same straight probes
+    np.testing.assert_allclose(tilt(a, 0.1), np.degrees(np.arctan(0.1 * 0.1 / 2)), atol=1e-3)  # uz = 0.9: 0.3 deg
+    np.testing.assert_allclose(tilt(b, 0.1), np.degrees(np.arctan(0.1 / 2)), atol=1e-3)  # uz = 0: 2.9 deg
+    with pytest.raises(ValueError, match="model.prior_lean=2"):
+        HapticGlance(prior="line_scan", prior_lean=2.0)
+    with pytest.raises(ValueError, match="needs model.prior: line_scan"):
+        HapticGlance(prior_lean=1.0)
+
+
+def test_side_scan_leans_both_ways_first_then_to_the_side_its_touches_show(data):
+    model = HapticGlance(n_probes=6, policy="line_scan", scan_span=0.5, scan_order="centre_out", scan_side=0.6)
+    points = torch.zeros(4, 6, 4)  # 0: both first probes touch, -x higher; 1: only -x; 2: nothing; 3: probe 4 (-x)
+    points[0, 0, 3] = points[0, 1, 3] = points[1, 1, 3] = points[3, 3, 3] = 1.0
+    points[0, 0, 2], points[0, 1, 2] = -0.5, -0.4
+    requests = model.scan_requests(points)
+    places = model.line_scan_requests()[:, 0]
+    torch.testing.assert_close(requests[..., 0], places[[0, 0, 1, 2, 3, 4]].expand(4, -1))  # first place twice
+    torch.testing.assert_close(requests[..., 1], torch.tensor([[1.0, -1, -1, -1, -1, -1], [1, -1, -1, -1, -1, -1],
+                                                              [1, -1, 1, -1, 1, -1], [1, -1, 1, -1, -1, -1]]))
+    assert (requests[..., 3] == 0.4).all() and (requests[..., 2] == 0).all()
+    higher = points.clone()
+    higher[0, 0, 2] = -0.3  # now the +x probe touched higher: the object lies to +x
+    assert model.scan_requests(higher)[0, 2:, 1].tolist() == [1.0] * 4
+    causal = points.clone()
+    causal[:, 5, 3] = 1.0  # what the last probe returns cannot move any request
+    torch.testing.assert_close(model.scan_requests(causal), requests)
+    model = make_model(data, policy="line_scan", scan_span=0.5, scan_order="centre_out", scan_side=0.6)
+    batch = first_batch(data)  # on real ray casts: every probe leans 16.7 degrees, to one side from the third on
+    rollout = model.rollout(batch["labels"], batch["poses"], 0)
+    model.sim.close()
+    assert (rollout.requests[:, :2, 1] == torch.tensor([1.0, -1.0])).all() and (rollout.requests[..., 1] != 0).all()
+    with pytest.raises(ValueError, match="model.scan_side=3"):
+        HapticGlance(scan_side=3.0)
+    with pytest.raises(ValueError, match="n_probes >= 2"):
+        HapticGlance(scan_side=0.6, n_probes=1)
+    with pytest.raises(ValueError, match="choose one way"):
+        HapticGlance(scan_side=0.6, scan_reach=1.0)
+
+
 def test_eval_sets_are_fixed_and_disjoint_from_training():
     one = ProbeDataModule(mode="ideal", val_episodes=40, test_episodes=40, eval_batch_size=16, seed=1)
     two = ProbeDataModule(mode="ideal", val_episodes=40, test_episodes=40, eval_batch_size=16, seed=2)

@@ -73,10 +73,11 @@ def hybrid_loss(logits: Tensor, labels: Tensor, log_pi: Tensor | None, baseline:
     return terms
 
 
-def scan_options_combine(lean: float, follow: float, cross: float, reach: float) -> bool:
-    """Whether these fixed-scan options (model.scan_lean, _follow, _cross, _reach; 0: off) may be set together: a
-    fanned scan may follow its touches, but the cross-checking and the reaching scans each stand alone."""
-    return sum(map(bool, (lean or follow, cross, reach))) <= 1
+def scan_options_combine(lean: float, follow: float, cross: float, reach: float, side: float = 0.0) -> bool:
+    """Whether these fixed-scan options (model.scan_lean, _follow, _cross, _reach, _side; 0: off) may be set
+    together: a fanned scan may follow its touches, but the cross-checking, reaching and side-picking scans each
+    stand alone."""
+    return sum(map(bool, (lean or follow, cross, reach, side))) <= 1
 
 
 @dataclass
@@ -103,9 +104,9 @@ class HapticGlance(pl.LightningModule):
                  gamma: float = 0.95, beta: float = 1.0, lr: float = 1e-3, point_scale: float = 2.0,
                  normalize_advantage: bool = False, policy_reads_detached: bool = False,
                  reward: Literal["correct", "log_gain"] = "correct", policy_lr_scale: float = 1.0,
-                 prior: Literal["none", "line_scan"] = "none", scan_span: float = 1.0,
+                 prior: Literal["none", "line_scan"] = "none", prior_lean: float = 0.0, scan_span: float = 1.0,
                  scan_order: Literal["sweep", "centre_out"] = "sweep", scan_lean: float = 0.0, scan_follow: float = 0.0,
-                 scan_cross: float = 0.0, scan_reach: float = 0.0,
+                 scan_cross: float = 0.0, scan_reach: float = 0.0, scan_side: float = 0.0,
                  point_frame: Literal["episode", "first_touch"] = "episode", touch_set: bool = False,
                  touch_set_net: Literal["small", "wide"] = "small", policy_warmup_steps: int = 0,
                  std_final_scale: float = 1.0) -> None:
@@ -159,14 +160,25 @@ class HapticGlance(pl.LightningModule):
         if not 0.0 <= scan_reach <= 2.0:
             raise ValueError(f"model.scan_reach={scan_reach}: must be in [0, 2] (1 - uz of the reaching probes; "
                              "0: none)")
-        if not scan_options_combine(scan_lean, scan_follow, scan_cross, scan_reach):
+        if not 0.0 <= scan_side <= 2.0:
+            raise ValueError(f"model.scan_side={scan_side}: must be in [0, 2] (1 - uz of the side-picking scan's "
+                             "probes; 0: none)")
+        if scan_side and n_probes < 2:
+            raise ValueError(f"model.scan_side={scan_side}: the side-picking scan needs model.n_probes >= 2, got "
+                             f"{n_probes}")
+        if not scan_options_combine(scan_lean, scan_follow, scan_cross, scan_reach, scan_side):
             raise ValueError(f"model.scan_lean={scan_lean}, model.scan_follow={scan_follow}, model.scan_cross="
-                             f"{scan_cross}, model.scan_reach={scan_reach}: choose one way for the scan to adapt "
-                             "(only scan_follow and scan_lean combine)")
+                             f"{scan_cross}, model.scan_reach={scan_reach}, model.scan_side={scan_side}: choose one "
+                             "way for the scan to adapt (only scan_follow and scan_lean combine)")
         if scan_order not in ("sweep", "centre_out"):
             raise ValueError(f"model.scan_order={scan_order!r}: expected 'sweep' or 'centre_out'")
         if prior not in ("none", "line_scan"):
             raise ValueError(f"model.prior={prior!r}: expected 'none' or 'line_scan'")
+        if not 0.0 <= prior_lean <= 1.5:
+            raise ValueError(f"model.prior_lean={prior_lean}: must be in [0, 1.5] (1 - uz of the prior's straight "
+                             "probes; 0: uz = 1)")
+        if prior_lean and prior != "line_scan":
+            raise ValueError(f"model.prior_lean={prior_lean}: needs model.prior: line_scan (it shapes that prior)")
 
     # -- simulator -----------------------------------------------------------------------------------
     def setup(self, stage: str) -> None:
@@ -196,8 +208,20 @@ class HapticGlance(pl.LightningModule):
 
     def prior_offsets(self, points: Tensor) -> Tensor | None:
         """(B, N, 4) pre-tanh means of the learned policy's prior, or None without one. Beyond the paper: the
-        policy may start from the fixed scan (`prior: line_scan`) and learn where to deviate from it."""
-        return torch.atanh(0.9 * self.scan_requests(points)) if self.hparams.prior == "line_scan" else None
+        policy may start from the fixed scan (`prior: line_scan`) and learn where to deviate from it.
+
+        With `prior_lean`, the prior's straight probes (ux = 0) ask for uz = 1 - prior_lean instead of 1: the same
+        probes, since a probe with ux = 0 goes straight down whatever uz, but ux now tilts them linearly (tan(tilt)
+        = tan(max_tilt) |ux| prior_lean / 2). At uz = 1 the tilt is a product of ux and 1 - uz, whose gradient
+        vanishes at straight down: a saddle the policy never leaves (its probes kept under a degree of tilt)."""
+        if self.hparams.prior != "line_scan":
+            return None
+        scan = self.scan_requests(points)
+        if self.hparams.prior_lean:
+            straight = scan[..., 1:3].abs().sum(-1) == 0
+            scan = scan.clone()
+            scan[..., 3] = torch.where(straight, 1.0 - self.hparams.prior_lean, scan[..., 3])
+        return torch.atanh(0.9 * scan)
 
     def scan_requests(self, points: Tensor) -> Tensor:
         """(B, N, 4): the fixed scan's requests, given the points (B, N, 4) its probes returned; request k reads
@@ -209,11 +233,13 @@ class HapticGlance(pl.LightningModule):
         then the scan goes on where it stopped: how the surface falls away across the line tells a ball from a
         pipe crossing it, and a leaning probe reaches an object lying off the line. With `scan_reach`, the scan
         goes straight down for its first third; then, while nothing is touched, it leans to +x and -x in turn
-        (it may lie off the line), and once something is, it keeps the direction of the probe that first touched."""
+        (it may lie off the line), and once something is, it keeps the direction of the probe that first touched.
+        With `scan_side`, every probe leans across the line and the scan picks the side the object lies on from
+        its first touches (side_picking)."""
         scan = self.line_scan_requests().to(points.device).expand(len(points), -1, -1).clone()
         h = self.hparams
-        if not (h.scan_follow or h.scan_cross or h.scan_reach):  # the plain scan, called at every probe: no more work
-            return scan
+        if not (h.scan_follow or h.scan_cross or h.scan_reach or h.scan_side):  # the plain scan, called at every
+            return scan  # probe: no more work
         n = scan.shape[1]
         touched = (points[..., 3] > 0.5).float()
         first = torch.where(touched.any(1), touched.argmax(1), torch.full_like(touched[:, 0], n, dtype=torch.long))
@@ -221,6 +247,8 @@ class HapticGlance(pl.LightningModule):
             return self.cross_checked(scan, first)
         if h.scan_reach:
             return self.reaching(scan, first)
+        if h.scan_side:
+            return self.side_picking(scan, points, first)
         step = h.scan_follow
         before = torch.cumsum(touched, 1) - touched  # touches among probes 1..k-1, for request k
         y_sum = torch.cumsum(touched * points[..., 1], 1) - touched * points[..., 1]
@@ -257,6 +285,26 @@ class HapticGlance(pl.LightningModule):
         ux = torch.where(leaning, torch.where((g - straight) % 2 == 0, 1.0, -1.0), 0.0)
         uz = torch.where(leaning, 1.0 - self.hparams.scan_reach, 1.0)
         return torch.stack([scan[..., 0], ux, torch.zeros_like(ux), uz], -1)
+
+    def side_picking(self, scan: Tensor, points: Tensor, first: Tensor) -> Tensor:
+        """(B, N, 4): the scan with every probe leaning across the line (uz = 1 - scan_side), towards the side the
+        object lies on once a touch tells it. Straight probes see only the slice of the object under the line, which
+        for an object lying off it looks alike across classes; a probe leaning its way cuts it nearer the middle
+        (scan_coverage.py --aims). The first two probes enter at the scan's first place leaning to +x, then -x;
+        the later ones take the scan's places from its second on (its last is dropped). While nothing is touched
+        the probes alternate +x and -x; after the first touch (index `first`, N if none) they all lean to its
+        side, or, when both of the first two probes touched, to the side of the higher touch: a probe leaning
+        towards the object meets its surface before one leaning away."""
+        n, lean = scan.shape[1], self.hparams.scan_side
+        k = torch.arange(n, device=scan.device)
+        alternate = torch.where(k % 2 == 0, 1.0, -1.0)
+        touched, z = points[..., 3] > 0.5, points[..., 2]
+        both = (first == 0) & touched[:, 1]
+        found = torch.where(both, torch.where(z[:, 0] >= z[:, 1], 1.0, -1.0), alternate[first.clamp(max=n - 1)])
+        decided = (first[:, None] < k) & (k >= 2)  # request k reads probes 1..k only: both first ones from k = 2
+        ux = torch.where(decided, found[:, None], alternate)
+        py = scan[:, (k - 1).clamp(min=0), 0]
+        return torch.stack([py, ux, torch.zeros_like(ux), torch.full_like(ux, 1.0 - lean)], -1)
 
     def line_scan_requests(self) -> Tensor:
         """(N, 4): probes evenly spaced over the middle `scan_span` of the probe line, swept from one end (the
