@@ -5,8 +5,8 @@ the line-scan baselines and the policies started from them (`model.prior: line_s
 scan (`model.scan_span` x `model.scan_order` x `model.scan_lean` x `model.scan_follow` x `model.scan_cross` x
 `model.scan_reach` x `model.scan_side`, as in `HapticGlance.scan_requests`) and
 for each checkpoint's mean-action policy (`--ckpt`), on the same episodes of a pose split: mean touches per
-episode after all probes and after half of them, the share of episodes with at least one touch, and the mean
-tilt of the requests from vertical. For a checkpoint also its accuracy after all probes on those rollouts,
+episode after all probes and after half of them, the share of episodes with at least one touch, the mean
+tilt of the requests from vertical, and the share of the leaning probes that lean towards the object's side. For a checkpoint also its accuracy after all probes on those rollouts,
 split by how many probes touched (a classifier can only be as good as what it touched) and by how far the
 object lies off the probe line. Seconds on one core.
 
@@ -32,12 +32,10 @@ the lean) of each probe from what it touched could reach with the same scan.
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --fit 16384 --episodes 4096   # what the scan can say
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --aims 0 0.6 exact --fit 16384   # ... aimed by an oracle
 
-Last line: JSON {"<order>-span<span>[-lean<lean>][-follow<follow>][-cross<cross>][-reach<reach>][-side<side>][-aim<aim>]"
-or
-"<checkpoint>":
-{"touches": .., "touches_first_half": .., "any_touch": .., "tilt_deg": ..[, "fit_accuracy": ..][, "accuracy": ..,
-"by_touches": {"0-1": {"share": .., "accuracy": ..}, ...}, "by_offset_cm": {"0-5": {...}, "5-10": .., "10+": ..}]},
-...}.
+Last line: JSON {"<order>-span<span>[-lean<lean>][-follow<follow>][-cross<cross>][-reach<reach>][-side<side>]
+[-aim<aim>]" or "<checkpoint>": {"touches": .., "touches_first_half": .., "any_touch": .., "tilt_deg": ..,
+"towards_object": ..[, "fit_accuracy": ..][, "accuracy": .., "by_touches": {"0-1": {"share": .., "accuracy": ..},
+...}, "by_offset_cm": {"0-5": {...}, "5-10": .., "10+": ..}]}, ...}.
 """
 from __future__ import annotations
 
@@ -168,13 +166,18 @@ def accuracy_by_touches(touches: np.ndarray, correct: np.ndarray, offsets: np.nd
                              split((offsets >= lo) & (offsets < hi)) for lo, hi in OFFSET_BINS}}
 
 
-def coverage(touches: np.ndarray, directions: np.ndarray) -> dict[str, float]:
+def coverage(touches: np.ndarray, directions: np.ndarray, offsets: np.ndarray) -> dict[str, float | None]:
+    """Touches, tilt, and the share of the probes tilted by more than a degree that lean towards the side of the
+    line the object lies on (offsets: object X - probe line X per episode; None when no probe leans)."""
     half = touches.shape[1] // 2
     tilt = np.degrees(np.arccos(np.clip(-directions[..., 2], -1, 1)))
+    leaning = tilt > 1.0
+    towards = np.sign(directions[..., 0]) == np.sign(offsets)[:, None]
     return {"touches": round(float(touches.sum(1).mean()), 3),
             "touches_first_half": round(float(touches[:, :half].sum(1).mean()), 3),
             "any_touch": round(float((touches.sum(1) > 0).mean()), 3),
-            "tilt_deg": round(float(tilt.mean()), 1)}
+            "tilt_deg": round(float(tilt.mean()), 1),
+            "towards_object": round(float(towards[leaning].mean()), 3) if leaning.any() else None}
 
 
 def _is_number(text: str) -> bool:
@@ -241,7 +244,7 @@ def main() -> None:
     labels, poses = sample_episodes(regions, args.split, args.episodes, len(sim.classes), np.random.default_rng(args.seed))
     half = args.n_probes // 2
     print(f"{args.episodes} {args.split} episodes, {args.mode} mode, {args.n_probes} probes")
-    print(f"{'touches':>8} {f'after {half}':>9} {'any touch':>10} {'tilt (deg)':>11}"
+    print(f"{'touches':>8} {f'after {half}':>9} {'any touch':>10} {'tilt (deg)':>11} {'towards':>8}"
           + (f" {'fit acc':>8}" if args.fit else "") + "  scan or checkpoint")
     results = {}
     for name, model in models.items():
@@ -249,14 +252,16 @@ def main() -> None:
             sys.exit(f"scan_coverage: error: {name}: trained for {model.hparams.n_probes} probes, not {args.n_probes}")
         points, directions, correct = policy_probes(model, sim, labels, poses)
         touches = points[..., 3].numpy()
-        r = results[name] = coverage(touches, directions)
+        offsets = poses[:, 0] - sim.scene.probe_x
+        r = results[name] = coverage(touches, directions, offsets)
         if args.fit and name in scans:
             r["fit_accuracy"] = round(fit_accuracy(model, sim, regions, args.fit, points, labels, args.fit_epochs,
                                                    args.seed, args.fit_net), 3)
-        print(f"{r['touches']:8.2f} {r['touches_first_half']:9.2f} {r['any_touch']:10.2f} {r['tilt_deg']:11.1f}"
+        towards = "-" if r["towards_object"] is None else f"{r['towards_object']:.2f}"
+        print(f"{r['touches']:8.2f} {r['touches_first_half']:9.2f} {r['any_touch']:10.2f} {r['tilt_deg']:11.1f} {towards:>8}"
               + (f" {r['fit_accuracy']:8.3f}" if "fit_accuracy" in r else "") + f"  {name}", flush=True)
         if name not in scans:  # a fixed scan built here has an untrained classifier: no accuracy
-            r.update(accuracy_by_touches(touches, correct, np.abs(poses[:, 0] - sim.scene.probe_x)))
+            r.update(accuracy_by_touches(touches, correct, np.abs(offsets)))
     for name in (name for name in results if name not in scans):
         r = results[name]
         for key, unit in (("by_touches", "touches"), ("by_offset_cm", "cm off the line")):

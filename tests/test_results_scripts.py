@@ -116,6 +116,7 @@ def test_table_row_trains_once_is_reused_and_feeds_the_noise_study(tmp_path):
     assert sweep["touches"] == centre["touches"] > 0 and sweep["tilt_deg"] == 0  # same probes, other order
     fan = figures["centre_out-span0.5-lean0.4"]
     assert fan["tilt_deg"] == pytest.approx(11.31 * 6 / 10, abs=0.1)  # 6 of 10 probes lean 11.3 degrees
+    assert centre["towards_object"] is None and 0.3 < fan["towards_object"] < 0.7  # the fan leans both ways
     policy = figures[record["best_checkpoint"]]
     assert 0 <= policy["any_touch"] <= 1 and 0 <= policy["accuracy"] <= 1 and "accuracy" not in centre
     # a classifier trained on each fixed scan's probes; the checkpoint brings its own
@@ -167,3 +168,6 @@ def test_oracle_aimed_scan_passes_under_the_object_centre_or_leans_towards_it():
     assert (np.sign(fixed[..., 0]) == side).all() and np.allclose(np.abs(fixed[..., 0]), abs(fixed[0, 0, 0]))
     bad = run("scan_coverage", "--aims", "left")
     assert bad.returncode != 0 and "--aims: 'left'" in bad.stderr
+    offsets = poses[:, 0] - sim.scene.probe_x
+    assert coverage.coverage(np.ones((16, 4)), fixed, offsets)["towards_object"] == 1.0
+    assert coverage.coverage(np.ones((16, 4)), fixed, -offsets)["towards_object"] == 0.0
