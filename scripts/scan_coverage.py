@@ -19,7 +19,9 @@ learned or on the classifier keeping up with it, so it tells whether a target is
 With `--aims`, also the scan aimed by an oracle that reads the object's pose: every probe leans across the line
 towards the object's centre, by a fixed lean (a number, in request units as `model.scan_lean`) or by exactly the
 lean that takes it under the centre (`exact`). Not a policy: a bound on what a policy that picks the side (and
-the lean) of each probe from what it touched could reach with the same scan.
+the lean) of each probe from what it touched could reach with the same scan. `--fit-target side` (with
+`--fit-probes K`) asks instead how well a scan's first K probes tell that side, on the episodes whose object lies
+at least 5 cm off the line.
 
     .venv/bin/python scripts/scan_coverage.py                        # 512 val episodes, ideal mode
     .venv/bin/python scripts/scan_coverage.py --mode arm --split test
@@ -31,11 +33,12 @@ the lean) of each probe from what it touched could reach with the same scan.
     .venv/bin/python scripts/scan_coverage.py --ckpt runs/table1/pcrn_fc_plus-seed0/checkpoints/best-step7500.ckpt
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --fit 16384 --episodes 4096   # what the scan can say
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --aims 0 0.6 exact --fit 16384   # ... aimed by an oracle
+    .venv/bin/python scripts/scan_coverage.py --spans 0.5 --sides 0.6 --fit 16384 --fit-target side --fit-probes 4
 
 Last line: JSON {"<order>-span<span>[-lean<lean>][-follow<follow>][-cross<cross>][-reach<reach>][-side<side>]
 [-aim<aim>]" or "<checkpoint>": {"touches": .., "touches_first_half": .., "any_touch": .., "tilt_deg": ..,
-"towards_object": ..[, "fit_accuracy": ..][, "accuracy": .., "by_touches": {"0-1": {"share": .., "accuracy": ..},
-...}, "by_offset_cm": {"0-5": {...}, "5-10": .., "10+": ..}]}, ...}.
+"towards_object": ..[, "fit_accuracy" or "fit_side_accuracy": ..][, "accuracy": .., "by_touches": {"0-1":
+{"share": .., "accuracy": ..}, ...}, "by_offset_cm": {"0-5": {...}, "5-10": .., "10+": ..}]}, ...}.
 """
 from __future__ import annotations
 
@@ -112,31 +115,43 @@ def touch_frame(points: torch.Tensor, scale: float = 5.0) -> torch.Tensor:
 
 
 class FitNet(torch.nn.Module):
-    """The classifier `--fit` trains on all probes of an episode: a PointNet on touch_frame(points), or the model's
+    """The classifier `--fit` trains on the probes of an episode: a PointNet on touch_frame(points), or the model's
     own touch-set classifier (model.touch_set; its logits after the last probe), to compare them on the same
-    probes."""
+    probes. For the side target a PointNet reads the points where they are (scaled as touch_frame's): the side
+    is where the object lies."""
 
-    def __init__(self, kind: str, n_classes: int) -> None:
+    def __init__(self, kind: str, n_classes: int, centred: bool = True) -> None:
         super().__init__()
-        self.kind = kind
+        self.kind, self.centred = kind, centred
         self.net = PointNet(n_classes, in_dim=4) if kind == "pointnet" else TouchSetClassifier(n_classes)
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
-        return self.net(touch_frame(points)) if self.kind == "pointnet" else self.net(points)[:, -1]
+        if self.kind != "pointnet":
+            return self.net(points)[:, -1]
+        if self.centred:
+            return self.net(touch_frame(points))
+        return self.net(torch.cat([points[..., :3] * 5.0, points[..., 3:]], -1))
+
+
+def fit_labels(target: str, labels: np.ndarray, poses: np.ndarray, scene) -> np.ndarray:
+    """What --fit learns to tell: the class, or the side of the probe line the object lies on (1: +x)."""
+    return labels if target == "class" else (poses[:, 0] > scene.probe_x).astype(np.int64)
 
 
 def fit_accuracy(model: HapticGlance, sim: ProbeSimulator, regions: PoseRegions, n_train: int, val_points: torch.Tensor,
-                 val_labels: np.ndarray, epochs: int, seed: int, kind: str = "pointnet") -> float:
-    """Validation accuracy of a classifier (FitNet) trained supervised on the fixed scan's probes in n_train
-    training-split episodes (rolled out in batches of the simulator's size): what this scan's probes can say
-    about the class."""
+                 val_labels: np.ndarray, epochs: int, seed: int, kind: str = "pointnet", target: str = "class",
+                 probes: int | None = None, val_mask: np.ndarray | None = None) -> float:
+    """Validation accuracy (over val_mask, default all) of a classifier (FitNet) trained supervised on the first
+    `probes` (default all) of the fixed scan's probes in n_train training-split episodes (rolled out in batches
+    of the simulator's size): what this scan's probes can say about the class, or the side (target)."""
     rng, batches = np.random.default_rng(seed + 1), []
     for i in range(max(1, n_train // sim.batch_size)):
         labels, poses = sample_episodes(regions, "train", sim.batch_size, len(sim.classes), rng)
-        batches.append((policy_probes(model, sim, labels, poses, seed=seed + 1 + i)[0], torch.from_numpy(labels)))
+        batches.append((policy_probes(model, sim, labels, poses, seed=seed + 1 + i)[0][:, :probes],
+                        torch.from_numpy(fit_labels(target, labels, poses, sim.scene))))
     points, labels = torch.cat([b[0] for b in batches]), torch.cat([b[1] for b in batches])
     torch.manual_seed(seed)
-    net = FitNet(kind, len(sim.classes))
+    net = FitNet(kind, len(sim.classes) if target == "class" else 2, centred=target == "class")
     optimiser = torch.optim.Adam(net.parameters(), lr=1e-3)
     for _ in range(epochs):
         net.train()
@@ -147,7 +162,8 @@ def fit_accuracy(model: HapticGlance, sim: ProbeSimulator, regions: PoseRegions,
             optimiser.step()
     net.eval()
     with torch.no_grad():
-        return float((net(val_points).argmax(-1).numpy() == val_labels).mean())
+        right = net(val_points[:, :probes]).argmax(-1).numpy() == val_labels
+    return float(right[val_mask].mean() if val_mask is not None else right.mean())
 
 
 def accuracy_by_touches(touches: np.ndarray, correct: np.ndarray, offsets: np.ndarray) -> dict:
@@ -219,7 +235,16 @@ def main() -> None:
     parser.add_argument("--fit-epochs", type=int, default=25)
     parser.add_argument("--fit-net", choices=["pointnet", "touch_set"], default="pointnet",
                         help="the classifier --fit trains: a PointNet, or the model's touch-set classifier")
+    parser.add_argument("--fit-target", choices=["class", "side"], default="class",
+                        help="what --fit learns: the class, or the side of the line the object lies on (scored on "
+                             "the episodes whose object lies at least 5 cm off the line, where the side matters)")
+    parser.add_argument("--fit-probes", type=int, default=None, metavar="K",
+                        help="--fit reads only each episode's first K probes (default: all)")
     args = parser.parse_args()
+    if args.fit_target == "side" and args.fit_net != "pointnet":
+        parser.error("--fit-target side: needs --fit-net pointnet")
+    if args.fit_probes is not None and not 1 <= args.fit_probes <= args.n_probes:
+        parser.error(f"--fit-probes {args.fit_probes}: must be in [1, --n-probes {args.n_probes}]")
     for aim in args.aims:
         if aim != "exact" and not _is_number(aim):
             parser.error(f"--aims: {aim!r} is neither a number nor 'exact'")
@@ -245,7 +270,8 @@ def main() -> None:
     half = args.n_probes // 2
     print(f"{args.episodes} {args.split} episodes, {args.mode} mode, {args.n_probes} probes")
     print(f"{'touches':>8} {f'after {half}':>9} {'any touch':>10} {'tilt (deg)':>11} {'towards':>8}"
-          + (f" {'fit acc':>8}" if args.fit else "") + "  scan or checkpoint")
+          + (f" {'fit acc' if args.fit_target == 'class' else 'fit side':>8}" if args.fit else "")
+          + "  scan or checkpoint")
     results = {}
     for name, model in models.items():
         if model.hparams.n_probes != args.n_probes:
@@ -255,11 +281,15 @@ def main() -> None:
         offsets = poses[:, 0] - sim.scene.probe_x
         r = results[name] = coverage(touches, directions, offsets)
         if args.fit and name in scans:
-            r["fit_accuracy"] = round(fit_accuracy(model, sim, regions, args.fit, points, labels, args.fit_epochs,
-                                                   args.seed, args.fit_net), 3)
+            key = "fit_accuracy" if args.fit_target == "class" else "fit_side_accuracy"
+            r[key] = round(fit_accuracy(model, sim, regions, args.fit, points,
+                                        fit_labels(args.fit_target, labels, poses, sim.scene), args.fit_epochs,
+                                        args.seed, args.fit_net, args.fit_target, args.fit_probes,
+                                        None if args.fit_target == "class" else np.abs(offsets) >= 0.05), 3)
         towards = "-" if r["towards_object"] is None else f"{r['towards_object']:.2f}"
         print(f"{r['touches']:8.2f} {r['touches_first_half']:9.2f} {r['any_touch']:10.2f} {r['tilt_deg']:11.1f} {towards:>8}"
-              + (f" {r['fit_accuracy']:8.3f}" if "fit_accuracy" in r else "") + f"  {name}", flush=True)
+              + "".join(f" {r[k]:8.3f}" for k in ("fit_accuracy", "fit_side_accuracy") if k in r) + f"  {name}",
+              flush=True)
         if name not in scans:  # a fixed scan built here has an untrained classifier: no accuracy
             r.update(accuracy_by_touches(touches, correct, np.abs(offsets)))
     for name in (name for name in results if name not in scans):

@@ -157,7 +157,15 @@ def test_oracle_aimed_scan_passes_under_the_object_centre_or_leans_towards_it():
     exact_model = coverage.scan_model("exact", **scan)
     exact = coverage.policy_probes(exact_model, sim, labels, poses)[1]
     fixed = coverage.policy_probes(coverage.scan_model("0.6", **scan), sim, labels, poses)[1]
+    side = {}
+    for aim in ("0", "0.6"):
+        model = coverage.scan_model(aim, **scan)
+        val_points = coverage.policy_probes(model, sim, labels, poses)[0]
+        side[aim] = coverage.fit_accuracy(model, sim, PoseRegions(sim.scene), 256, val_points,
+                                          coverage.fit_labels("side", labels, poses, sim.scene), 40, 0,
+                                          target="side", probes=2)
     sim.close()
+    assert side["0.6"] >= 0.9 and side["0"] <= 0.75
     assert isinstance(exact_model, coverage.OracleAimedScan) and np.allclose(plain[..., :2], 0)
     # each exact probe, entering on the line (x = probe_x), is at the object's centre x at its centre depth
     depth = -poses[:, 2][:, None]
@@ -171,3 +179,9 @@ def test_oracle_aimed_scan_passes_under_the_object_centre_or_leans_towards_it():
     offsets = poses[:, 0] - sim.scene.probe_x
     assert coverage.coverage(np.ones((16, 4)), fixed, offsets)["towards_object"] == 1.0
     assert coverage.coverage(np.ones((16, 4)), fixed, -offsets)["towards_object"] == 0.0
+    # --fit-target side: probes leaning to the object's side tell it; straight probes cannot (mirror images)
+    assert (coverage.fit_labels("side", labels, poses, sim.scene) == (offsets > 0)).all()
+    for bad_args, message in ((["--fit-target", "side", "--fit-net", "touch_set"], "needs --fit-net pointnet"),
+                              (["--fit-probes", "0"], "--fit-probes 0")):
+        bad = run("scan_coverage", *bad_args)
+        assert bad.returncode != 0 and message in bad.stderr
