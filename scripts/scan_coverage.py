@@ -269,6 +269,10 @@ def main() -> None:
     labels, poses = sample_episodes(regions, args.split, args.episodes, len(sim.classes), np.random.default_rng(args.seed))
     half = args.n_probes // 2
     print(f"{args.episodes} {args.split} episodes, {args.mode} mode, {args.n_probes} probes")
+    if args.fit_target == "side":  # what naming one side every time would score
+        far = np.abs(poses[:, 0] - sim.scene.probe_x) >= 0.05
+        print(f"{far.mean():.3f} of them lie at least 5 cm off the line, "
+              f"{(poses[far, 0] > sim.scene.probe_x).mean():.3f} of those to +x")
     print(f"{'touches':>8} {f'after {half}':>9} {'any touch':>10} {'tilt (deg)':>11} {'towards':>8}"
           + (f" {'fit acc' if args.fit_target == 'class' else 'fit side':>8}" if args.fit else "")
           + "  scan or checkpoint")
