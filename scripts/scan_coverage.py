@@ -6,7 +6,8 @@ scan (`model.scan_span` x `model.scan_order` x `model.scan_lean` x `model.scan_f
 `model.scan_reach` x `model.scan_side`, as in `HapticGlance.scan_requests`) and
 for each checkpoint's mean-action policy (`--ckpt`), on the same episodes of a pose split: mean touches per
 episode after all probes and after half of them, the share of episodes with at least one touch, the mean
-tilt of the requests from vertical, and the share of the leaning probes that lean towards the object's side. For a checkpoint also its accuracy after all probes on those rollouts,
+tilt of the requests from vertical, and the share of the leaning probes that lean towards the object's side.
+For a checkpoint also its accuracy after all probes on those rollouts,
 split by how many probes touched (a classifier can only be as good as what it touched) and by how far the
 object lies off the probe line. Seconds on one core.
 
@@ -291,7 +292,8 @@ def main() -> None:
                                         args.seed, args.fit_net, args.fit_target, args.fit_probes,
                                         None if args.fit_target == "class" else np.abs(offsets) >= 0.05), 3)
         towards = "-" if r["towards_object"] is None else f"{r['towards_object']:.2f}"
-        print(f"{r['touches']:8.2f} {r['touches_first_half']:9.2f} {r['any_touch']:10.2f} {r['tilt_deg']:11.1f} {towards:>8}"
+        print(f"{r['touches']:8.2f} {r['touches_first_half']:9.2f} {r['any_touch']:10.2f} {r['tilt_deg']:11.1f}"
+              f" {towards:>8}"
               + "".join(f" {r[k]:8.3f}" for k in ("fit_accuracy", "fit_side_accuracy") if k in r) + f"  {name}",
               flush=True)
         if name not in scans:  # a fixed scan built here has an untrained classifier: no accuracy

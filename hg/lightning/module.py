@@ -213,7 +213,7 @@ class HapticGlance(pl.LightningModule):
         With `prior_lean`, the prior's straight probes (ux = 0) ask for uz = 1 - prior_lean instead of 1: the same
         probes, since a probe with ux = 0 goes straight down whatever uz, but ux now tilts them linearly (tan(tilt)
         = tan(max_tilt) |ux| prior_lean / 2). At uz = 1 the tilt is a product of ux and 1 - uz, whose gradient
-        vanishes at straight down: a saddle the policy never leaves (its probes kept under a degree of tilt)."""
+        vanishes at straight down: a saddle the learned policies did not leave (their probes stayed within a degree)."""
         if self.hparams.prior != "line_scan":
             return None
         scan = self.scan_requests(points)
