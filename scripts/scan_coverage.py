@@ -62,6 +62,7 @@ from hg.sim import PoseRegions, ProbeSimulator, sample_episodes  # noqa: E402
 
 TOUCH_BINS = ((0, 1), (2, 3), (4, 5), (6, 10**6))  # touches per episode, inclusive
 OFFSET_BINS = ((0.0, 0.05), (0.05, 0.10), (0.10, 10.0))  # |object X - probe line X| in metres, [low, high)
+SIDE_MIN_OFFSET = 0.05  # --fit-target side is scored where the object lies at least this far off the line (m)
 
 
 def policy_probes(model: HapticGlance, sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray, seed: int = 0
@@ -93,26 +94,25 @@ class OracleAimedScan(HapticGlance):
         scene = self.sim.scene
         off, depth = poses[:, 0].double() - scene.probe_x, -poses[:, 2].double()
         if self.aim == "exact":  # tan(tilt) = tan(max_tilt) |ux| when uy = 0, uz = -1 (request_to_probe)
-            self.lean = (off / depth / np.tan(np.radians(scene.max_tilt_deg))).clamp(-1, 1).float()
-        else:
-            self.lean = float(self.aim) * torch.sign(off).float()
+            ux, uz = (off / depth / np.tan(np.radians(scene.max_tilt_deg))).clamp(-1, 1).float(), -1.0
+        else:  # as model.scan_lean: ux the lean, uz 0 (half the tilt range)
+            ux, uz = float(self.aim) * torch.sign(off).float(), 0.0
+        self.direction = torch.stack([ux, torch.zeros_like(ux), torch.full_like(ux, uz)], -1)  # (ux, uy, uz)
         return super().rollout(labels, poses, seed, deterministic, follow_scan)
 
     def next_actions(self, *args, **kwargs) -> torch.Tensor:
         action = super().next_actions(*args, **kwargs).clone()
-        if self.aim == "exact":
-            action[:, 1:] = torch.stack([self.lean, torch.zeros_like(self.lean), -torch.ones_like(self.lean)], -1)
-        else:  # as model.scan_lean: ux the lean, uy 0, uz 0 (half the tilt range)
-            action[:, 1:] = torch.stack([self.lean, torch.zeros_like(self.lean), torch.zeros_like(self.lean)], -1)
+        action[:, 1:] = self.direction
         return action
 
 
-def touch_frame(points: torch.Tensor, scale: float = 5.0) -> torch.Tensor:
+def touch_frame(points: torch.Tensor, scale: float = 5.0, centred: bool = True) -> torch.Tensor:
     """(B, N, 4) probes -> (B, N, 4): X, Y, Z relative to the mean of the episode's touched points (x scale, to
-    about unit size), and T. Where the object lies is no class cue; misses stay in, as where it is not."""
+    about unit size), and T. Where the object lies is no class cue; misses stay in, as where it is not. Not
+    centred: where the object lies is the question (--fit-target side)."""
     touched = points[..., 3:]
     centre = (points[..., :3] * touched).sum(1, keepdim=True) / touched.sum(1, keepdim=True).clamp(min=1)
-    return torch.cat([(points[..., :3] - centre) * scale, touched], -1)
+    return torch.cat([(points[..., :3] - centre * centred) * scale, touched], -1)
 
 
 class FitNet(torch.nn.Module):
@@ -129,9 +129,7 @@ class FitNet(torch.nn.Module):
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         if self.kind != "pointnet":
             return self.net(points)[:, -1]
-        if self.centred:
-            return self.net(touch_frame(points))
-        return self.net(torch.cat([points[..., :3] * 5.0, points[..., 3:]], -1))
+        return self.net(touch_frame(points, centred=self.centred))
 
 
 def fit_labels(target: str, labels: np.ndarray, poses: np.ndarray, scene) -> np.ndarray:
@@ -269,11 +267,12 @@ def main() -> None:
     regions = PoseRegions(sim.scene)
     labels, poses = sample_episodes(regions, args.split, args.episodes, len(sim.classes), np.random.default_rng(args.seed))
     half = args.n_probes // 2
+    offsets = poses[:, 0] - sim.scene.probe_x
+    far = np.abs(offsets) >= SIDE_MIN_OFFSET
     print(f"{args.episodes} {args.split} episodes, {args.mode} mode, {args.n_probes} probes")
     if args.fit_target == "side":  # what naming one side every time would score
-        far = np.abs(poses[:, 0] - sim.scene.probe_x) >= 0.05
-        print(f"{far.mean():.3f} of them lie at least 5 cm off the line, "
-              f"{(poses[far, 0] > sim.scene.probe_x).mean():.3f} of those to +x")
+        print(f"{far.mean():.3f} of them lie at least {100 * SIDE_MIN_OFFSET:g} cm off the line, "
+              f"{(offsets[far] > 0).mean():.3f} of those to +x")
     print(f"{'touches':>8} {f'after {half}':>9} {'any touch':>10} {'tilt (deg)':>11} {'towards':>8}"
           + (f" {'fit acc' if args.fit_target == 'class' else 'fit side':>8}" if args.fit else "")
           + "  scan or checkpoint")
@@ -283,14 +282,13 @@ def main() -> None:
             sys.exit(f"scan_coverage: error: {name}: trained for {model.hparams.n_probes} probes, not {args.n_probes}")
         points, directions, correct = policy_probes(model, sim, labels, poses)
         touches = points[..., 3].numpy()
-        offsets = poses[:, 0] - sim.scene.probe_x
         r = results[name] = coverage(touches, directions, offsets)
         if args.fit and name in scans:
             key = "fit_accuracy" if args.fit_target == "class" else "fit_side_accuracy"
             r[key] = round(fit_accuracy(model, sim, regions, args.fit, points,
                                         fit_labels(args.fit_target, labels, poses, sim.scene), args.fit_epochs,
                                         args.seed, args.fit_net, args.fit_target, args.fit_probes,
-                                        None if args.fit_target == "class" else np.abs(offsets) >= 0.05), 3)
+                                        None if args.fit_target == "class" else far), 3)
         towards = "-" if r["towards_object"] is None else f"{r['towards_object']:.2f}"
         print(f"{r['touches']:8.2f} {r['touches_first_half']:9.2f} {r['any_touch']:10.2f} {r['tilt_deg']:11.1f}"
               f" {towards:>8}"

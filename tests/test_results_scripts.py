@@ -153,20 +153,15 @@ def test_oracle_aimed_scan_passes_under_the_object_centre_or_leans_towards_it():
     sim = ProbeSimulator("hg4", batch_size=16, mode="ideal", seed=0)
     labels, poses = sample_episodes(PoseRegions(sim.scene), "val", 16, 4, np.random.default_rng(0))
     scan = dict(n_probes=4, policy="line_scan", scan_span=0.5, scan_order="centre_out")
-    plain = coverage.policy_probes(coverage.scan_model("0", **scan), sim, labels, poses)[1]
-    exact_model = coverage.scan_model("exact", **scan)
-    exact = coverage.policy_probes(exact_model, sim, labels, poses)[1]
-    fixed = coverage.policy_probes(coverage.scan_model("0.6", **scan), sim, labels, poses)[1]
-    side = {}
-    for aim in ("0", "0.6"):
-        model = coverage.scan_model(aim, **scan)
-        val_points = coverage.policy_probes(model, sim, labels, poses)[0]
-        side[aim] = coverage.fit_accuracy(model, sim, PoseRegions(sim.scene), 256, val_points,
-                                          coverage.fit_labels("side", labels, poses, sim.scene), 40, 0,
-                                          target="side", probes=2)
+    models = {aim: coverage.scan_model(aim, **scan) for aim in ("0", "0.6", "exact")}
+    probes = {aim: coverage.policy_probes(model, sim, labels, poses) for aim, model in models.items()}
+    plain, fixed, exact = (probes[aim][1] for aim in ("0", "0.6", "exact"))
+    told = {aim: coverage.fit_accuracy(models[aim], sim, PoseRegions(sim.scene), 256, probes[aim][0],
+                                       coverage.fit_labels("side", labels, poses, sim.scene), 40, 0,
+                                       target="side", probes=2) for aim in ("0", "0.6")}
     sim.close()
-    assert side["0.6"] >= 0.9 and side["0"] <= 0.75
-    assert isinstance(exact_model, coverage.OracleAimedScan) and np.allclose(plain[..., :2], 0)
+    assert told["0.6"] >= 0.9 and told["0"] <= 0.75
+    assert isinstance(models["exact"], coverage.OracleAimedScan) and np.allclose(plain[..., :2], 0)
     # each exact probe, entering on the line (x = probe_x), is at the object's centre x at its centre depth
     depth = -poses[:, 2][:, None]
     x_at_depth = sim.scene.probe_x + depth * exact[..., 0] / -exact[..., 2]

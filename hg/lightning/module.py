@@ -149,20 +149,15 @@ class HapticGlance(pl.LightningModule):
             raise ValueError(f"model.point_frame={point_frame!r}: expected 'episode' or 'first_touch'")
         if not 0.0 < scan_span <= 1.0:
             raise ValueError(f"model.scan_span={scan_span}: the scanned share of the probe line must be in (0, 1]")
-        if not 0.0 <= scan_lean <= 2.0:
-            raise ValueError(f"model.scan_lean={scan_lean}: must be in [0, 2] (1 - uz of the leaning probes)")
         if not 0.0 <= scan_follow <= 1.0:
             raise ValueError(f"model.scan_follow={scan_follow}: must be in [0, 1] (a step along the probe line, "
                              "in request units; 0: no following)")
-        if not 0.0 <= scan_cross <= 2.0:
-            raise ValueError(f"model.scan_cross={scan_cross}: must be in [0, 2] (1 - uz of the cross-check probes; "
-                             "0: none)")
-        if not 0.0 <= scan_reach <= 2.0:
-            raise ValueError(f"model.scan_reach={scan_reach}: must be in [0, 2] (1 - uz of the reaching probes; "
-                             "0: none)")
-        if not 0.0 <= scan_side <= 2.0:
-            raise ValueError(f"model.scan_side={scan_side}: must be in [0, 2] (1 - uz of the side-picking scan's "
-                             "probes; 0: none)")
+        for name, value, probes in (("scan_lean", scan_lean, "leaning probes"),
+                                    ("scan_cross", scan_cross, "cross-check probes"),
+                                    ("scan_reach", scan_reach, "reaching probes"),
+                                    ("scan_side", scan_side, "side-picking scan's probes")):
+            if not 0.0 <= value <= 2.0:
+                raise ValueError(f"model.{name}={value}: must be in [0, 2] (1 - uz of the {probes}; 0: none)")
         if scan_side and n_probes < 2:
             raise ValueError(f"model.scan_side={scan_side}: the side-picking scan needs model.n_probes >= 2, got "
                              f"{n_probes}")
