@@ -322,6 +322,24 @@ def test_prior_lean_lets_a_small_ux_tilt_the_prior_s_straight_probes():
         HapticGlance(prior_lean=1.0)
 
 
+def test_prior_exact_starts_the_mean_policy_on_the_scan_it_warmed_up_behind(data):
+    scan = dict(prior="line_scan", scan_span=0.5, scan_order="centre_out")
+    batch = first_batch(data)
+    requests = {}
+    for exact in (False, True):
+        model = make_model(data, **scan, prior_exact=exact)
+        requests[exact] = model.rollout(batch["labels"], batch["poses"], 0, deterministic=True).requests
+        model.sim.close()
+    expected = model.scan_requests(torch.zeros(len(batch["labels"]), data.n_probes, 4))
+    # the same straight probes at the same places (uz 0.9 stays inside tanh's range; with ux = uy = 0 it is moot)
+    torch.testing.assert_close(requests[True][..., :3], expected[..., :3])
+    torch.testing.assert_close(requests[True][..., 3], torch.full_like(expected[..., 3], 0.9))
+    # without it the mean starts off the scan: Py shrunk by 0.9 and moved by the untrained head
+    assert (requests[False][..., 0] - expected[..., 0]).abs().max() > 0.005
+    with pytest.raises(ValueError, match="model.prior_exact=True: needs model.prior: line_scan"):
+        HapticGlance(prior_exact=True)
+
+
 def test_side_scan_leans_both_ways_first_then_to_the_side_its_touches_show(data):
     model = HapticGlance(n_probes=6, policy="line_scan", scan_span=0.5, scan_order="centre_out", scan_side=0.6)
     points = torch.zeros(4, 6, 4)  # 0: both first probes touch, -x higher; 1: only -x; 2: nothing; 3: probe 4 (-x)

@@ -104,7 +104,8 @@ class HapticGlance(pl.LightningModule):
                  gamma: float = 0.95, beta: float = 1.0, lr: float = 1e-3, point_scale: float = 2.0,
                  normalize_advantage: bool = False, policy_reads_detached: bool = False,
                  reward: Literal["correct", "log_gain"] = "correct", policy_lr_scale: float = 1.0,
-                 prior: Literal["none", "line_scan"] = "none", prior_lean: float = 0.0, scan_span: float = 1.0,
+                 prior: Literal["none", "line_scan"] = "none", prior_lean: float = 0.0, prior_exact: bool = False,
+                 scan_span: float = 1.0,
                  scan_order: Literal["sweep", "centre_out"] = "sweep", scan_lean: float = 0.0, scan_follow: float = 0.0,
                  scan_cross: float = 0.0, scan_reach: float = 0.0, scan_side: float = 0.0,
                  point_frame: Literal["episode", "first_touch"] = "episode", touch_set: bool = False,
@@ -142,7 +143,7 @@ class HapticGlance(pl.LightningModule):
         if touch_set_net not in touch_nets:
             raise ValueError(f"model.touch_set_net={touch_set_net!r}: expected one of {sorted(touch_nets)}")
         self.touch_set = touch_nets[touch_set_net]() if touch_set else None
-        self.location = LocationNetwork(dim, hidden=128, std_floor=std_floor, std_max=std_max)
+        self.location = LocationNetwork(dim, hidden=128, std_floor=std_floor, std_max=std_max, zero_mean=prior_exact)
         self.baseline = Baseline(dim)
         self.sim: ProbeSimulator | None = None
         if point_frame not in ("episode", "first_touch"):
@@ -174,6 +175,8 @@ class HapticGlance(pl.LightningModule):
                              "probes; 0: uz = 1)")
         if prior_lean and prior != "line_scan":
             raise ValueError(f"model.prior_lean={prior_lean}: needs model.prior: line_scan (it shapes that prior)")
+        if prior_exact and prior != "line_scan":
+            raise ValueError("model.prior_exact=True: needs model.prior: line_scan (it starts the policy there)")
 
     # -- simulator -----------------------------------------------------------------------------------
     def setup(self, stage: str) -> None:
@@ -208,7 +211,12 @@ class HapticGlance(pl.LightningModule):
         With `prior_lean`, the prior's straight probes (ux = 0) ask for uz = 1 - prior_lean instead of 1: the same
         probes, since a probe with ux = 0 goes straight down whatever uz, but ux now tilts them linearly (tan(tilt)
         = tan(max_tilt) |ux| prior_lean / 2). At uz = 1 the tilt is a product of ux and 1 - uz, whose gradient
-        vanishes at straight down: a saddle the learned policies did not leave (their probes stayed within a degree)."""
+        vanishes at straight down: a saddle the learned policies did not leave (their probes stayed within a degree).
+
+        With `prior_exact`, the policy's mean starts at the scan's requests themselves, so that the probes do not
+        move when the policy takes over from the scan the classifier learned behind during a warm-up: the mean
+        head starts at zero (LocationNetwork zero_mean), and only requests beyond +-0.9 (uz = 1, the ends of a
+        full-span scan) are pulled inside tanh's range, instead of every request shrinking by 0.9."""
         if self.hparams.prior != "line_scan":
             return None
         scan = self.scan_requests(points)
@@ -216,7 +224,7 @@ class HapticGlance(pl.LightningModule):
             straight = scan[..., 1:3].abs().sum(-1) == 0
             scan = scan.clone()
             scan[..., 3] = torch.where(straight, 1.0 - self.hparams.prior_lean, scan[..., 3])
-        return torch.atanh(0.9 * scan)
+        return torch.atanh(scan.clamp(-0.9, 0.9) if self.hparams.prior_exact else 0.9 * scan)
 
     def scan_requests(self, points: Tensor) -> Tensor:
         """(B, N, 4): the fixed scan's requests, given the points (B, N, 4) its probes returned; request k reads

@@ -30,7 +30,8 @@ class LocationNetwork(nn.Module):
     """
 
     def __init__(
-        self, in_dim: int, action_dim: int = 4, hidden: int = 128, std_floor: float = 0.05, std_max: float = 1.0
+        self, in_dim: int, action_dim: int = 4, hidden: int = 128, std_floor: float = 0.05, std_max: float = 1.0,
+        zero_mean: bool = False,
     ) -> None:
         super().__init__()
         if not 0 < std_floor < std_max:
@@ -50,6 +51,10 @@ class LocationNetwork(nn.Module):
             nn.ELU(),
             MaskedLinear(d_hidden, d_out, strict=True),
         )
+        if zero_mean:  # beyond the paper: mu starts at tanh(offset), so a policy starts exactly at its prior
+            with torch.no_grad():
+                self.net[-1].weight[:action_dim].zero_()
+                self.net[-1].bias[:action_dim].zero_()
 
     def state(self, rep_sum: Tensor | None, k: int, batch_size: int | None = None) -> Tensor:
         """s_k from which request k + 1 is drawn: the mean of the first k representations, given as their sum
