@@ -71,6 +71,9 @@ ROWS = {
                                     learned=False),
     "centre_scan_touchset_wide": Row("configs/centre_scan_touchset_wide.yaml",
                                      "centre-out scan + PCRN-FC + wide touch set (beyond the paper)", learned=False),
+    "centre_scan_touchset_wide_long": Row("configs/centre_scan_touchset_wide_long.yaml",
+                                          "centre-out scan + PCRN-FC + wide touch set, 16000 steps (beyond the "
+                                          "paper)", learned=False),
     "pcrn_fc_centre_touchset_warmup_wide": Row("configs/pcrn_fc_centre_touchset_warmup_wide.yaml",
                                                "PCRN-FC+ from the centre-out scan + wide touch set, policy from step "
                                                "4000 (beyond the paper)"),
