@@ -340,6 +340,31 @@ def test_prior_exact_starts_the_mean_policy_on_the_scan_it_warmed_up_behind(data
         HapticGlance(prior_exact=True)
 
 
+def test_prior_anchor_charges_the_mean_policy_for_leaving_its_prior(data):
+    model = make_model(data, prior="line_scan", scan_span=0.5, scan_order="centre_out", prior_exact=True,
+                       prior_anchor=2.0)
+    batch = first_batch(data)
+    rollout = model.rollout(batch["labels"], batch["poses"], 0)
+    model.sim.close()
+    assert model.evaluate(rollout, batch["labels"])[0]["prior_shift"] == 0  # on its prior: nothing to charge
+    with torch.no_grad():
+        model.location.net[-1].bias[0] += 0.3  # the mean moves Py off the scan
+    losses, pulls = {}, {}
+    for weight in (2.0, 0.0):
+        model.hparams.prior_anchor = weight
+        terms, _ = model.evaluate(rollout, batch["labels"])
+        model.zero_grad()
+        terms["loss"].backward()
+        losses[weight], pulls[weight] = terms["loss"].detach(), model.location.net[-1].bias.grad[0].item()
+    assert terms["prior_shift"] > 0.01
+    torch.testing.assert_close(losses[2.0] - losses[0.0], 2.0 * terms["prior_shift"])
+    assert pulls[2.0] - pulls[0.0] > 0  # a gradient step pulls the mean back towards the scan
+    with pytest.raises(ValueError, match="model.prior_anchor=1.0: needs model.prior: line_scan"):
+        HapticGlance(prior_anchor=1.0)
+    with pytest.raises(ValueError, match="model.prior_anchor=-1.0: must be >= 0"):
+        HapticGlance(prior="line_scan", prior_anchor=-1.0)
+
+
 def test_side_scan_leans_both_ways_first_then_to_the_side_its_touches_show(data):
     model = HapticGlance(n_probes=6, policy="line_scan", scan_span=0.5, scan_order="centre_out", scan_side=0.6)
     points = torch.zeros(4, 6, 4)  # 0: both first probes touch, -x higher; 1: only -x; 2: nothing; 3: probe 4 (-x)

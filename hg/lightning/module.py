@@ -105,7 +105,7 @@ class HapticGlance(pl.LightningModule):
                  normalize_advantage: bool = False, policy_reads_detached: bool = False,
                  reward: Literal["correct", "log_gain"] = "correct", policy_lr_scale: float = 1.0,
                  prior: Literal["none", "line_scan"] = "none", prior_lean: float = 0.0, prior_exact: bool = False,
-                 scan_span: float = 1.0,
+                 prior_anchor: float = 0.0, scan_span: float = 1.0,
                  scan_order: Literal["sweep", "centre_out"] = "sweep", scan_lean: float = 0.0, scan_follow: float = 0.0,
                  scan_cross: float = 0.0, scan_reach: float = 0.0, scan_side: float = 0.0,
                  point_frame: Literal["episode", "first_touch"] = "episode", touch_set: bool = False,
@@ -177,6 +177,12 @@ class HapticGlance(pl.LightningModule):
             raise ValueError(f"model.prior_lean={prior_lean}: needs model.prior: line_scan (it shapes that prior)")
         if prior_exact and prior != "line_scan":
             raise ValueError("model.prior_exact=True: needs model.prior: line_scan (it starts the policy there)")
+        if prior_anchor < 0.0:
+            raise ValueError(f"model.prior_anchor={prior_anchor}: must be >= 0 (the weight of the policy mean's squared "
+                             "distance from its prior; 0: none)")
+        if prior_anchor and prior != "line_scan":
+            raise ValueError(f"model.prior_anchor={prior_anchor}: needs model.prior: line_scan (it holds the policy "
+                             "near that prior)")
 
     # -- simulator -----------------------------------------------------------------------------------
     def setup(self, stage: str) -> None:
@@ -380,9 +386,17 @@ class HapticGlance(pl.LightningModule):
         beta = h.beta * float(self.location.std_scale)
         terms = hybrid_loss(logits, labels, log_pi, baseline, h.gamma, beta, h.normalize_advantage, h.reward)
         if log_pi is not None:
-            with torch.no_grad():  # too large a std is the usual cause of poor accuracy: watch it
-                sigma = self.location.distribution(states, rollout.actions, offsets)[1].mean((0, 1))
+            mu, sigma = self.location.distribution(states, rollout.actions, offsets)
+            sigma = sigma.detach().mean((0, 1))  # too large a std is the usual cause of poor accuracy: watch it
             terms.update({f"std_{c}": sigma[i] for i, c in enumerate(COMPONENTS)})
+            if offsets is not None:
+                # how far the mean policy has moved from its prior (request units, squared, summed over components);
+                # beyond the paper, `prior_anchor` charges for it, so the policy leaves the scan its classifier
+                # learned behind only where the reward pays for the move
+                shift = (mu - torch.tanh(offsets)).pow(2).sum(-1).mean()
+                terms["prior_shift"] = shift.detach()
+                if h.prior_anchor:
+                    terms["loss"] = terms["loss"] + h.prior_anchor * shift
         return terms, logits
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
