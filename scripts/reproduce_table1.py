@@ -242,6 +242,27 @@ def targets(table: dict[str, dict]) -> list[str]:
     return lines
 
 
+def summary(table: dict[str, dict]) -> list[str]:
+    """One line per row, for reading the rows against each other: the full per-probe tables follow it."""
+    paper = {ROWS[r].paper: PAPER[ROWS[r].paper][10] for r in table if ROWS[r].paper}
+
+    def cell(entry: dict, key: str, k: int) -> str:
+        if key not in entry:
+            return ""
+        mean, std = entry[key][k - 1], entry[f"{key}_std"][k - 1]
+        return f"{mean:.3f}" if len(entry["seeds"]) == 1 else f"{mean:.3f} +- {std:.3f}"
+
+    lines = ["| row | seeds | after 1 | after 3 | after 5 | after 10 | after 10, mean action | validation, after 10 "
+             "| paper, after 10 |", "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for r, entry in table.items():
+        val = entry.get("best_val_acc")
+        lines.append(f"| {entry['label']} | {len(entry['seeds'])} | " + " | ".join(
+            cell(entry, "accuracy", k) for k in (1, 3, 5)) + f" | **{cell(entry, 'accuracy', 10)}** | "
+            f"{cell(entry, 'accuracy_mean_action', 10)} | {'' if val is None else f'{val:.3f}'} | "
+            f"{paper.get(ROWS[r].paper, '')} |")
+    return lines
+
+
 def markdown(table: dict[str, dict], runs: dict[str, list[dict]], merged_at: str) -> str:
     n = len(next(iter(table.values()))["accuracy"])
     rows, first = list(table), next(iter(runs.values()))[0]
@@ -256,6 +277,12 @@ def markdown(table: dict[str, dict], runs: dict[str, list[dict]], merged_at: str
              "Produced by `.venv/bin/python scripts/reproduce_table1.py` (paper protocol: 8000 steps, batch 64, "
              "10 probes, arm mode, hg4; the configs are named below). Merged at commit "
              f"`{merged_at}`; each row's runs were made at the commits listed with it.",
+             "",
+             "In short (the tables after each probe follow; chance is 0.25):",
+             "",
+             *summary(table),
+             "",
+             "## After each probe",
              "",
              "| probes | " + " | ".join(table[r]["label"] for r in rows) + " | " + " | ".join(
                  f"paper {c}" for c in PAPER) + " |",

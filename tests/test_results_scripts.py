@@ -49,6 +49,10 @@ def test_table_merge_means_stds_paper_columns_and_targets(tmp_path):
     assert saved["rows"]["pcrn_fc"]["seeds"] == [0, 1] and saved["paper"]["PCRN-FC"]["10"] == 0.796
     text = (tmp_path / "table1.md").read_text()
     assert "| 10 | 0.950 +- 0.071 | 0.600 +- 0.000 | 0.400 +- 0.000 | 0.723 | 0.843 | 0.796 |" in text
+    # the one-line summary: seeds, stochastic and mean-action accuracy, validation, the paper's figure; no std of 1 seed
+    assert ("| PCRN-FC | 2 | 0.600 +- 0.141 | 0.600 +- 0.141 | 0.600 +- 0.141 | **0.950 +- 0.071** | 0.950 +- 0.071 "
+            "| 0.500 | 0.796 |") in text
+    assert "| random probes + PCRN-FC | 1 | 0.400 | 0.400 | 0.400 | **0.400** |  | 0.500 |  |" in text
     assert "After 10 probes >= 0.95: met (0.950, +0.000)" in text
     assert "After 5 probes >= 0.85: not met (0.600, -0.250)" in text
     assert "Beats random + PCRN-FC" not in text and "by >= 0.15 after 10 probes: met (+0.550)" in text
