@@ -9,12 +9,18 @@ after 10 probes under the simulator's missed / false-contact noise, at noise rat
   without noise), tested on those episodes with SensorNoise(miss_prob = rate, false_contact_prob = rate): each
   probe's reading is corrupted with probability `rate`.
 
+- Ours trained at the rate (`--models ours_trained`, beyond the paper; not in the default run, for its cost: one
+  training per rate and seed): a table row's config (`--trained-row`, default the best PCRN variant) trained,
+  validated and tested with the sensor noise at the rate, as the point-cloud baselines are. At rate 0 it is
+  that row's own table run. Its checkpoints go to <runs-dir>; an interrupted training resumes there.
+
 Each (model, rate, seed) leaves a JSON in <out>/noise_runs/ and is not recomputed (ours: per table row, and
 again when that row's checkpoint changed); the merge writes noise.{md,json,png}, with ours from the row that
 table1.json names best now. Last line printed: JSON of the mean accuracies per model and rate, and the commit.
 
     .venv/bin/python scripts/reproduce_noise.py                 # needs the table1 runs' checkpoints for 'ours'
     .venv/bin/python scripts/reproduce_noise.py --models pointnet dgcnn --seeds 0
+    .venv/bin/python scripts/reproduce_noise.py --models ours_trained --rates 0.3 --seeds 0
 """
 from __future__ import annotations
 
@@ -106,19 +112,26 @@ def train_point_cloud_net(name: str, rate: float, seed: int, steps: int, batch_s
 
 
 # -- our model under sensor noise --------------------------------------------------------------------------
-def best_pcrn_row(results: Path) -> tuple[str, dict[int, Path], int]:
-    """The table's best PCRN variant (`best_pcrn` of table1.json, chosen on validation accuracy), its
-    checkpoints by training seed, and the size of the test set the table used."""
+def table_row(results: Path, row: str | None = None) -> tuple[str, str, dict[int, dict], int]:
+    """A row of table1.json (default: its best PCRN variant, `best_pcrn`, chosen on validation accuracy): its name,
+    config, run records by training seed (checkpoints, accuracies) and the size of the test set the table used."""
     table_path = results / "table1.json"
     if not table_path.is_file():
         raise FileNotFoundError(f"{table_path}: run scripts/reproduce_table1.py first (our model's checkpoints)")
     saved = json.loads(table_path.read_text())
-    row = saved.get("best_pcrn")
+    row = row or saved.get("best_pcrn")
     if row is None:
         raise ValueError(f"{table_path}: no learned PCRN row (only {', '.join(saved['rows'])}); "
                          "train one with reproduce_table1.py")
+    if row not in saved["rows"]:
+        raise ValueError(f"{table_path}: no row {row!r} (rows: {', '.join(saved['rows'])})")
     runs = [json.loads(p.read_text()) for p in sorted((results / "runs").glob(f"{row}-seed*.json"))]
-    return row, {r["seed"]: ROOT / r["best_checkpoint"] for r in runs}, saved["test_episodes"]
+    return row, saved["rows"][row]["config"], {r["seed"]: r for r in runs}, saved["test_episodes"]
+
+
+def noise_args(rate: float) -> list[str]:
+    """CLI overrides that corrupt each probe's reading with probability `rate` (a missed or a false contact)."""
+    return ["--data.noise.miss_prob", str(rate), "--data.noise.false_contact_prob", str(rate)]
 
 
 def test_under_noise(checkpoint: Path, rate: float, test_episodes: int = TEST_EPISODES) -> dict:
@@ -133,8 +146,7 @@ def test_under_noise(checkpoint: Path, rate: float, test_episodes: int = TEST_EP
         raise FileNotFoundError(f"{checkpoint}: checkpoint of the table1 run not found (runs/ is not committed; "
                                 "rerun that row with scripts/reproduce_table1.py)")
     data = datamodule_from_checkpoint(checkpoint, args=[
-        "--data.noise.miss_prob", str(rate), "--data.noise.false_contact_prob", str(rate),
-        "--data.eval_seed", str(EVAL_SEED), "--data.test_episodes", str(test_episodes)])
+        *noise_args(rate), "--data.eval_seed", str(EVAL_SEED), "--data.test_episodes", str(test_episodes)])
     model = HapticGlance.load_from_checkpoint(checkpoint, map_location="cpu")
     trainer = pl.Trainer(accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
                          enable_model_summary=False, deterministic=True)
@@ -146,6 +158,27 @@ def test_under_noise(checkpoint: Path, rate: float, test_episodes: int = TEST_EP
             "checkpoint": repo_path(checkpoint), "test_wall_s": round(time.time() - start, 1)}
 
 
+def train_under_noise(row: str, config: str, seed: int, rate: float, table_runs: dict[int, dict], runs_dir: Path,
+                      test_episodes: int, steps: int | None) -> dict:
+    """Our model trained at the rate it is tested at, as the point-cloud baselines are: the row's config with the
+    sensor noise on in training, validation and test. At rate 0 that is the table's own run of the row."""
+    if rate == 0:
+        if seed not in table_runs:
+            raise FileNotFoundError(f"docs/results/runs/{row}-seed{seed}.json: no table run of {row} with seed {seed} "
+                                    "(rate 0 is the table's own run; train it with reproduce_table1.py)")
+        run = table_runs[seed]
+        return {"accuracy": run["accuracy"][-1], "accuracy_per_probe": run["accuracy"], "checkpoint":
+                run["best_checkpoint"], "best_val_acc": run["best_val_acc"], "train_wall_s": run["train_wall_s"]}
+    from hg.lightning.experiment import fit_and_test
+
+    folder = runs_dir / f"ours_trained-{row}-rate{round(rate * 100):02d}-seed{seed}"
+    facts = fit_and_test(ROOT / config, seed, folder, eval_seed=EVAL_SEED, test_episodes=test_episodes, steps=steps,
+                         extra_args=noise_args(rate))
+    return {"accuracy": facts["accuracy"][-1], "accuracy_per_probe": facts["accuracy"],
+            "checkpoint": facts["best_checkpoint"],
+            **{k: facts[k] for k in ("best_val_acc", "train_wall_s", "test_wall_s", "max_steps", "resumed_from_step")}}
+
+
 # -- merge ------------------------------------------------------------------------------------------------
 def merge(out: Path) -> dict:
     table_path = out / "table1.json"
@@ -155,7 +188,8 @@ def merge(out: Path) -> dict:
         run = json.loads(path.read_text())
         if run["model"] == "ours" and run["row"] != best:  # a row that is no longer the table's best
             continue
-        runs.setdefault(run["model"], {}).setdefault(run["rate"], []).append(run)
+        key = f"ours_trained-{run['row']}" if run["model"] == "ours_trained" else run["model"]
+        runs.setdefault(key, {}).setdefault(run["rate"], []).append(run)
     if not runs:
         raise SystemExit(f"{out / 'noise_runs'}: no finished runs to merge")
     summary = {}
@@ -203,7 +237,10 @@ def noise_markdown(summary: dict, merged_at: str) -> str:
              "surface, top and bottom, without having to find the object first.",
              "- Ours: the best PCRN variant of `table1.md` (chosen on validation accuracy), trained without noise, "
              "tested with each probe's reading corrupted with probability = rate (a touch reported as a miss at the "
-             "ray's end, or a miss as a touch at a random point of the ray).", "",
+             "ray's end, or a miss as a touch at a random point of the ray).",
+             *(["- Ours trained at the rate: that table row's config trained, validated and tested with the noise "
+                "at the rate, as PointNet and DGCNN are; at 0 % it is the row's own table run."]
+               if any(m.startswith("ours_trained-") for m in summary) else []), "",
              "| model | " + " | ".join(f"{100 * r:.0f} %" for r in rates) + " | seeds | commits | hardware |",
              "|---|" + "---:|" * len(rates) + "---|---|---|"]
     for entry in summary.values():
@@ -219,7 +256,11 @@ def noise_markdown(summary: dict, merged_at: str) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--models", nargs="+", default=["pointnet", "dgcnn", "ours"],
-                        choices=["pointnet", "dgcnn", "ours"])
+                        choices=["pointnet", "dgcnn", "ours", "ours_trained"])
+    parser.add_argument("--trained-row", default=None,
+                        help="table row that ours_trained trains at each rate (default: the best PCRN variant)")
+    parser.add_argument("--ours-steps", type=int, default=None, help="override ours_trained's max_steps (smoke tests)")
+    parser.add_argument("--runs-dir", type=Path, default=ROOT / "runs" / "noise", help="ours_trained's checkpoints")
     parser.add_argument("--rates", nargs="+", type=float, default=list(RATES))
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2], help="training seeds of the baselines")
     parser.add_argument("--steps", type=int, default=1000, help="training steps of the baselines")
@@ -228,12 +269,20 @@ def main() -> None:
     parser.add_argument("--merge-only", action="store_true")
     args = parser.parse_args()
     if not args.merge_only:
-        jobs = [(m, r, s) for s in args.seeds for m in args.models if m != "ours" for r in args.rates]  # seed-major
+        jobs = [(m, r, s) for s in args.seeds for m in args.models if m in NETS for r in args.rates]  # seed-major
         if "ours" in args.models:
-            row, checkpoints, test_episodes = best_pcrn_row(args.out)
+            row, _, table_runs, test_episodes = table_row(args.out)
+            checkpoints = {seed: ROOT / run["best_checkpoint"] for seed, run in table_runs.items()}
             jobs += [("ours", r, seed) for r in args.rates for seed in sorted(checkpoints)]
+        if "ours_trained" in args.models:
+            trained_row, trained_config, trained_runs, test_episodes = table_row(args.out, args.trained_row)
+            jobs += [("ours_trained", r, seed) for seed in args.seeds for r in args.rates]
         for model, rate, seed in jobs:
-            name = f"ours-{row}" if model == "ours" else model
+            name = model  # ours and ours_trained: per table row
+            if model == "ours":
+                name = f"ours-{row}"
+            elif model == "ours_trained":
+                name = f"ours_trained-{trained_row}"
             path = args.out / "noise_runs" / f"{name}-rate{round(rate * 100):02d}-seed{seed}.json"
             if path.is_file() and (model != "ours" or
                                    json.loads(path.read_text())["checkpoint"] == repo_path(checkpoints[seed])):
@@ -242,6 +291,11 @@ def main() -> None:
             if model == "ours":
                 result = test_under_noise(checkpoints[seed], rate, test_episodes)
                 result["label"], result["row"] = f"ours: {row} after 10 probes", row
+            elif model == "ours_trained":
+                result = train_under_noise(trained_row, trained_config, seed, rate, trained_runs, args.runs_dir,
+                                           test_episodes, args.ours_steps)
+                result["label"] = f"ours trained at the rate: {trained_row} after 10 probes"
+                result["row"] = trained_row
             else:
                 result = train_point_cloud_net(model, rate, seed, args.steps, args.batch_size)
                 result["label"] = NETS[model][0]

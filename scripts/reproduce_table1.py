@@ -14,7 +14,6 @@ The last line printed is JSON: for each row its mean accuracy after each probe, 
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import os
 import subprocess
@@ -120,59 +119,15 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out_dir: Path, steps: in
                    test_episodes: int = TEST_EPISODES) -> None:
     """Train one (row, seed) with the paper protocol, resuming from its last checkpoint; score the checkpoint
     that was best on val on the test set; write the run JSON atomically (its presence marks the run done)."""
-    from hg.lightning.cli import cli
+    from hg.lightning.experiment import fit_and_test
 
     code_commit = commit()  # the code this run trains with, read before it starts
     name = run_name(row, seed)
-    folder = runs_dir / name
-    checkpoints = folder / "checkpoints"
-    args = ["--config", str(ROOT / ROWS[row].config), "--seed_everything", str(seed),
-            "--data.eval_seed", str(EVAL_SEED), "--data.test_episodes", str(test_episodes),
-            "--trainer.logger.init_args.save_dir", str(folder), "--trainer.logger.init_args.name", name,
-            "--checkpoint.dirpath", str(checkpoints), "--last_checkpoint.dirpath", str(checkpoints)]
-    if steps is not None:
-        args += ["--trainer.max_steps", str(steps), "--trainer.val_check_interval", str(max(1, min(500, steps // 4)))]
-    run = cli(args, run=False)
-    last = checkpoints / "last.ckpt"
-    resumed_from = int(torch_load_step(last)) if last.is_file() else 0
-    start = time.time()
-    run.trainer.fit(run.model, datamodule=run.datamodule, ckpt_path=str(last) if last.is_file() else None)
-    train_s = time.time() - start
-    best = next(c for c in run.trainer.checkpoint_callbacks if getattr(c, "monitor", None) == "val/acc")
-    start = time.time()
-    run.trainer.test(run.model, datamodule=run.datamodule, ckpt_path=best.best_model_path)
-    test_s = time.time() - start
-    from hg.lightning.callbacks import per_probe_table
-
-    n_probes = run.model.hparams.n_probes
-    columns = per_probe_table(run.trainer.callback_metrics, "test", n_probes)
-    result = {
-        "row": row, "label": ROWS[row].label, "config": ROWS[row].config, "seed": seed,
-        "max_steps": run.trainer.max_steps, "resumed_from_step": resumed_from,
-        "accuracy": [round(v, 4) for v in columns["stochastic"]],
-        "accuracy_mean_action": [round(v, 4) for v in columns["mean_action"]] if "mean_action" in columns else None,
-        "best_val_acc": round(float(best.best_model_score), 4) if best.best_model_score is not None else None,
-        "best_checkpoint": repo_path(best.best_model_path),
-        "train_wall_s": round(train_s, 1), "test_wall_s": round(test_s, 1), "parallel_jobs": jobs,
-        "test_episodes": test_episodes, "test_fingerprint": test_fingerprint(run.datamodule),
-        "commit": code_commit, "hardware": hardware(), "torch_threads": __import__("torch").get_num_threads(),
-    }
+    facts = fit_and_test(ROOT / ROWS[row].config, seed, runs_dir / name, eval_seed=EVAL_SEED,
+                         test_episodes=test_episodes, steps=steps)
+    result = {"row": row, "label": ROWS[row].label, "config": ROWS[row].config, "seed": seed, **facts,
+              "parallel_jobs": jobs, "commit": code_commit, "hardware": hardware()}
     write_atomic(out_dir / "runs" / f"{name}.json", json.dumps(result, indent=1) + "\n")
-
-
-def torch_load_step(path: Path) -> int:
-    import torch
-
-    return torch.load(path, map_location="cpu", weights_only=False)["global_step"]
-
-
-def test_fingerprint(datamodule) -> str:
-    """SHA-256 of the test episodes (labels and poses): the merge checks that every row met the same ones."""
-    digest = hashlib.sha256()
-    for batch in datamodule.test_dataloader().dataset.batches:
-        digest.update(batch["labels"].numpy().tobytes())
-        digest.update(batch["poses"].numpy().tobytes())
-    return digest.hexdigest()[:16]
 
 
 # -- merge ------------------------------------------------------------------------------------------------

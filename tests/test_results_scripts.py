@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "WANDB_MODE": "disabled", "OMP_NUM_THREADS": "1"}
@@ -107,6 +108,21 @@ def test_table_row_trains_once_is_reused_and_feeds_the_noise_study(tmp_path):
     (tmp_path / "noise_runs" / "ours-pcrn_nclass-rate00-seed0.json").write_text(json.dumps(stale))
     again = run("reproduce_noise", "--models", "ours", "--rates", "0", "0.5", "--out", str(tmp_path))
     assert again.returncode == 0 and json.loads(again.stdout.strip().splitlines()[-1])["ours"][0] == clean["accuracy"]
+    # ours trained at the rate: rate 0 is the table's run, others train the row's config with the noise on
+    trained = run("reproduce_noise", "--models", "ours_trained", "--rates", "0", "0.5", "--seeds", "0",
+                  "--ours-steps", "2", "--out", str(tmp_path), "--runs-dir", str(tmp_path / "noise_ckpt"))
+    assert trained.returncode == 0, trained.stderr[-2000:]
+    clean, noisy = (json.loads((tmp_path / "noise_runs" / f"ours_trained-pcrn_fc-rate{r}-seed0.json").read_text())
+                    for r in ("00", "50"))
+    assert clean["accuracy"] == record["accuracy"][-1] and clean["checkpoint"] == record["best_checkpoint"]
+    assert noisy["max_steps"] == 2 and len(noisy["accuracy_per_probe"]) == 10
+    saved = torch.load(ROOT / noisy["checkpoint"], map_location="cpu", weights_only=False)
+    assert saved["datamodule_hyper_parameters"]["noise"]["miss_prob"] == 0.5  # it trained with the noise on
+    merged = json.loads(trained.stdout.strip().splitlines()[-1])
+    assert len(merged["ours_trained-pcrn_fc"]) == 2 and merged["ours"][0] == record["accuracy"][-1]
+    assert "Ours trained at the rate" in (tmp_path / "noise.md").read_text()
+    missing = run("reproduce_noise", "--models", "ours_trained", "--rates", "0", "--seeds", "1", "--out", str(tmp_path))
+    assert missing.returncode != 0 and "pcrn_fc-seed1.json: no table run" in missing.stderr
     # where the checkpoint's policy probes, beside the fixed scans, on the same episodes
     coverage = run("scan_coverage", "--episodes", "32", "--spans", "0.5", "--leans", "0", "0.4",
                    "--follows", "0", "0.05", "--ckpt", record["best_checkpoint"], "--fit", "32", "--fit-epochs", "1")

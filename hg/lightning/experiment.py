@@ -1,0 +1,69 @@
+"""One training run of a config, scored on held-out episodes: the unit of work of the result scripts
+(scripts/reproduce_table1.py, scripts/reproduce_noise.py). A run resumes from its folder's last checkpoint, so one
+cut off at the end of a working session goes on where it stopped instead of starting again."""
+from __future__ import annotations
+
+import hashlib
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from hg.provenance import repo_path
+
+
+def fit_and_test(config: Path, seed: int, folder: Path, *, eval_seed: int, test_episodes: int,
+                 steps: int | None = None, extra_args: Sequence[str] = ()) -> dict:
+    """Train `config` with `seed` (checkpoints and the wandb run in `folder`), then test the checkpoint best on val.
+
+    `extra_args` are CLI overrides applied after the config (e.g. the sensor noise); `steps` overrides max_steps
+    (smoke tests). Returns the accuracy after each probe (stochastic and, for a learned policy, mean action), the
+    best checkpoint and the run's facts; the caller adds what it is for and writes it."""
+    import wandb
+
+    from hg.lightning.callbacks import per_probe_table
+    from hg.lightning.cli import cli
+
+    checkpoints = folder / "checkpoints"
+    args = ["--config", str(config), "--seed_everything", str(seed),
+            "--data.eval_seed", str(eval_seed), "--data.test_episodes", str(test_episodes),
+            "--trainer.logger.init_args.save_dir", str(folder), "--trainer.logger.init_args.name", folder.name,
+            "--checkpoint.dirpath", str(checkpoints), "--last_checkpoint.dirpath", str(checkpoints), *extra_args]
+    if steps is not None:
+        args += ["--trainer.max_steps", str(steps), "--trainer.val_check_interval", str(max(1, min(500, steps // 4)))]
+    run = cli(args, run=False)
+    last = checkpoints / "last.ckpt"
+    resumed_from = checkpoint_step(last) if last.is_file() else 0
+    start = time.time()
+    run.trainer.fit(run.model, datamodule=run.datamodule, ckpt_path=str(last) if last.is_file() else None)
+    train_s = time.time() - start
+    best = next(c for c in run.trainer.checkpoint_callbacks if getattr(c, "monitor", None) == "val/acc")
+    start = time.time()
+    run.trainer.test(run.model, datamodule=run.datamodule, ckpt_path=best.best_model_path)
+    test_s = time.time() - start
+    columns = per_probe_table(run.trainer.callback_metrics, "test", run.model.hparams.n_probes)
+    wandb.finish()  # close the run here: a caller that goes on (another run, a merge) must not print into its logs
+    return {
+        "max_steps": run.trainer.max_steps, "resumed_from_step": resumed_from,
+        "accuracy": [round(v, 4) for v in columns["stochastic"]],
+        "accuracy_mean_action": [round(v, 4) for v in columns["mean_action"]] if "mean_action" in columns else None,
+        "best_val_acc": round(float(best.best_model_score), 4) if best.best_model_score is not None else None,
+        "best_checkpoint": repo_path(best.best_model_path),
+        "train_wall_s": round(train_s, 1), "test_wall_s": round(test_s, 1),
+        "test_episodes": test_episodes, "test_fingerprint": test_fingerprint(run.datamodule),
+        "torch_threads": __import__("torch").get_num_threads(),
+    }
+
+
+def checkpoint_step(path: Path) -> int:
+    import torch
+
+    return int(torch.load(path, map_location="cpu", weights_only=False)["global_step"])
+
+
+def test_fingerprint(datamodule) -> str:
+    """SHA-256 of the test episodes (labels and poses): a merge checks that every run met the same ones."""
+    digest = hashlib.sha256()
+    for batch in datamodule.test_dataloader().dataset.batches:
+        digest.update(batch["labels"].numpy().tobytes())
+        digest.update(batch["poses"].numpy().tobytes())
+    return digest.hexdigest()[:16]
