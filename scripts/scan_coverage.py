@@ -39,7 +39,8 @@ at least 5 cm off the line.
 Last line: JSON {"<order>-span<span>[-lean<lean>][-follow<follow>][-cross<cross>][-reach<reach>][-side<side>]
 [-aim<aim>]" or "<checkpoint>": {"touches": .., "touches_first_half": .., "any_touch": .., "tilt_deg": ..,
 "towards_object": ..[, "fit_accuracy" or "fit_side_accuracy": ..][, "accuracy": .., "by_touches": {"0-1":
-{"share": .., "accuracy": ..}, ...}, "by_offset_cm": {"0-5": {...}, "5-10": .., "10+": ..}]}, ...}.
+{"share": .., "accuracy": ..}, ...}, "by_offset_cm": {"0-5": {...}, "5-10": .., "10+": ..}][, "prior_shift_rms":
+{"py": .., "ux": .., "uy": .., "uz": ..}]}, ...}.
 """
 from __future__ import annotations
 
@@ -54,7 +55,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from hg.lightning.module import HapticGlance, scan_options_combine  # noqa: E402
+from hg.lightning.module import COMPONENTS, HapticGlance, scan_options_combine  # noqa: E402
 from hg.nets.pointcloud import PointNet, TouchSetClassifier  # noqa: E402
 from hg.provenance import repo_path  # noqa: E402
 from hg.sim import PoseRegions, ProbeSimulator, sample_episodes  # noqa: E402
@@ -66,18 +67,24 @@ SIDE_MIN_OFFSET = 0.05  # --fit-target side is scored where the object lies at l
 
 
 def policy_probes(model: HapticGlance, sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray, seed: int = 0
-                  ) -> tuple[torch.Tensor, np.ndarray, np.ndarray]:
+                  ) -> tuple[torch.Tensor, np.ndarray, np.ndarray, dict[str, float] | None]:
     """(episodes, probes, 4) points and (episodes, probes, 3) unit probe directions of the model's policy (mean
-    action for a learned one) on these episodes, and (episodes,) whether its prediction after the last probe is
-    right (meaningful for a trained checkpoint only)."""
+    action for a learned one) on these episodes, (episodes,) whether its prediction after the last probe is
+    right (meaningful for a trained checkpoint only), and, for a learned policy with a prior, how far its requests
+    lie from the prior's: the root mean square per request component (py, ux, uy, uz), in request units."""
     model.sim = sim
     labels_t = torch.from_numpy(labels)
     rollout = model.rollout(labels_t, torch.from_numpy(poses), seed=seed, deterministic=True)
     with torch.no_grad():
         correct = (model.evaluate(rollout, labels_t)[1][:, -1].argmax(-1) == labels_t).numpy()
+    shift = None
+    if model.hparams.policy == "learned" and model.hparams.prior != "none":
+        prior = torch.tanh(model.prior_offsets(rollout.points))  # the requests of the mean policy it started from
+        rms = (rollout.requests - prior).pow(2).mean((0, 1)).sqrt()
+        shift = {c: round(float(v), 4) for c, v in zip(COMPONENTS, rms)}
     requests = rollout.requests.double().numpy()
     directions = sim.scene.request_to_probe(requests.reshape(-1, 4))[1]
-    return rollout.points, directions.reshape(*requests.shape[:2], 3), correct
+    return rollout.points, directions.reshape(*requests.shape[:2], 3), correct, shift
 
 
 class OracleAimedScan(HapticGlance):
@@ -280,9 +287,11 @@ def main() -> None:
     for name, model in models.items():
         if model.hparams.n_probes != args.n_probes:
             sys.exit(f"scan_coverage: error: {name}: trained for {model.hparams.n_probes} probes, not {args.n_probes}")
-        points, directions, correct = policy_probes(model, sim, labels, poses)
+        points, directions, correct, shift = policy_probes(model, sim, labels, poses)
         touches = points[..., 3].numpy()
         r = results[name] = coverage(touches, directions, offsets)
+        if shift is not None:
+            r["prior_shift_rms"] = shift
         if args.fit and name in scans:
             key = "fit_accuracy" if args.fit_target == "class" else "fit_side_accuracy"
             r[key] = round(fit_accuracy(model, sim, regions, args.fit, points,
@@ -302,6 +311,9 @@ def main() -> None:
             split = ", ".join(f"{b} {unit}: {v['share']:.2f} of episodes, accuracy "
                               + ("-" if v["accuracy"] is None else f"{v['accuracy']:.3f}") for b, v in r[key].items())
             print(f"{name}: accuracy after {args.n_probes} probes {r['accuracy']:.3f} ({split})")
+        if "prior_shift_rms" in r:
+            print(f"{name}: mean requests off the prior's, rms per component: "
+                  + ", ".join(f"{c} {v:.3f}" for c, v in r["prior_shift_rms"].items()))
     sim.close()
     print(json.dumps(results))
 

@@ -200,3 +200,23 @@ def test_oracle_aimed_scan_passes_under_the_object_centre_or_leans_towards_it():
                               (["--fit-probes", "0"], "--fit-probes 0")):
         bad = run("scan_coverage", *bad_args)
         assert bad.returncode != 0 and message in bad.stderr
+
+
+def test_coverage_measures_how_far_a_learned_policy_moved_from_its_prior():
+    import numpy as np
+
+    from hg.lightning.module import HapticGlance
+    from hg.sim import PoseRegions, ProbeSimulator, sample_episodes
+
+    coverage = script("scan_coverage")
+    sim = ProbeSimulator("hg4", batch_size=8, mode="ideal", seed=0)
+    labels, poses = sample_episodes(PoseRegions(sim.scene), "val", 8, 4, np.random.default_rng(0))
+    model = HapticGlance(width=16, representation=32, hidden=32, prior="line_scan", scan_span=0.5,
+                         scan_order="centre_out", prior_exact=True)
+    assert coverage.policy_probes(model, sim, labels, poses)[3] == {"py": 0, "ux": 0, "uy": 0, "uz": 0}  # on it
+    with torch.no_grad():
+        model.location.net[-1].bias[0] += 0.3  # the mean moves Py off the scan, and nothing else
+    shift = coverage.policy_probes(model, sim, labels, poses)[3]
+    assert shift["py"] > 0.05 and shift["ux"] == shift["uy"] == shift["uz"] == 0
+    assert coverage.policy_probes(HapticGlance(policy="line_scan"), sim, labels, poses)[3] is None  # no prior
+    sim.close()
