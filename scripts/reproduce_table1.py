@@ -33,6 +33,7 @@ from hg.provenance import commit, hardware, repo_path  # noqa: E402
 
 TEST_EPISODES = 2048  # the fixed held-out test set every row is scored on (data.eval_seed 0)
 EVAL_SEED = 0
+SEEDS = (0, 1, 2)  # training seeds of every row (the protocol)
 
 
 @dataclass(frozen=True)
@@ -166,9 +167,11 @@ def summarise(runs: dict[str, list[dict]]) -> dict[str, dict]:
 
 def best_pcrn(table: dict[str, dict]) -> str | None:
     """The learned PCRN row with the highest mean validation accuracy after 10 probes: chosen on val, never on
-    the test episodes the table reports."""
+    the test episodes the table reports, and among the rows that have all their seeds when any has (one lucky
+    seed must not outrank a mean over three)."""
     pcrn = [row for row in table if ROWS[row].learned and ROWS[row].encoder == "pcrn"]
-    return max(pcrn, key=lambda row: table[row].get("best_val_acc", -1.0)) if pcrn else None
+    complete = [row for row in pcrn if len(table[row]["seeds"]) >= len(SEEDS)]
+    return max(complete or pcrn, key=lambda row: table[row].get("best_val_acc", -1.0)) if pcrn else None
 
 
 def targets(table: dict[str, dict]) -> list[str]:
@@ -178,7 +181,8 @@ def targets(table: dict[str, dict]) -> list[str]:
     if best:
         acc = table[best]["accuracy"]
         paper_best = {k: max(col[k] for col in PAPER.values()) for k in range(2, 11)}
-        lines.append(f"- Best PCRN variant (highest mean validation accuracy after 10 probes, "
+        among = f" among the rows with all {len(SEEDS)} seeds" if len(table[best]["seeds"]) >= len(SEEDS) else ""
+        lines.append(f"- Best PCRN variant (highest mean validation accuracy after 10 probes{among}, "
                      f"{table[best].get('best_val_acc', float('nan')):.3f}): {table[best]['label']}.")
         for k, goal in ((10, 0.95), (5, 0.85)):
             lines.append(f"- After {k} probes >= {goal}: {'met' if acc[k - 1] >= goal else 'not met'} "
@@ -293,7 +297,7 @@ def merge(out_dir: Path) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS))
-    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
     parser.add_argument("--jobs", type=int, default=1, help="runs trained at once (each gets cores/jobs threads)")
     parser.add_argument("--steps", type=int, default=None, help="override max_steps (smoke tests only)")
     parser.add_argument("--test-episodes", type=int, default=TEST_EPISODES, help="test set size (smoke tests only)")

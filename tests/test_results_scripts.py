@@ -72,6 +72,12 @@ def test_best_pcrn_variant_is_chosen_on_validation_not_test(tmp_path):
     text = (tmp_path / "table1.md").read_text()
     assert "(highest mean validation accuracy after 10 probes, 0.800): PCRN-FC+ (beyond the paper)." in text
     assert "after 10 probes: not met (+0.100)." in text  # against the centre-out scan, a fixed policy
+    for seed in (1, 2):  # once a row has its three seeds, a row with one seed cannot outrank it
+        fake_run(tmp_path, "pcrn_fc", seed, [0.9] * 10, val=0.6)
+    table1.merge(tmp_path)
+    assert json.loads((tmp_path / "table1.json").read_text())["best_pcrn"] == "pcrn_fc"
+    assert ("(highest mean validation accuracy after 10 probes among the rows with all 3 seeds, 0.600): PCRN-FC."
+            in (tmp_path / "table1.md").read_text())
 
 
 def test_table_merge_refuses_runs_scored_on_different_test_episodes(tmp_path):
