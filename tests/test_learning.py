@@ -365,6 +365,28 @@ def test_prior_anchor_charges_the_mean_policy_for_leaving_its_prior(data):
         HapticGlance(prior="line_scan", prior_anchor=-1.0)
 
 
+def test_mean_action_share_probes_some_episodes_with_the_mean_and_trains_the_policy_on_the_others(data):
+    model = make_model(data, mean_action_share=0.5)
+    batch = first_batch(data)
+    labels, half = batch["labels"], len(batch["labels"]) // 2
+    mean_rows = torch.arange(len(labels)) < half
+    mixed, mean, sampled = (model.rollout(labels, batch["poses"], 0, deterministic=d) for d in (mean_rows, True, False))
+    model.sim.close()
+    torch.testing.assert_close(mixed.actions[:half], mean.actions[:half])
+    torch.testing.assert_close(mixed.actions[half:], sampled.actions[half:])  # the same draws as without the share
+    assert not torch.equal(mean.actions[half:], sampled.actions[half:])
+    torch.manual_seed(0)
+    logits, log_pi, baseline = torch.randn(len(labels), 10, 4), torch.randn(len(labels), 10), torch.rand(len(labels), 10)
+    both = hybrid_loss(logits, labels, log_pi, baseline, 0.9, 1.0, sampled=~mean_rows)
+    only = hybrid_loss(logits[half:], labels[half:], log_pi[half:], baseline[half:], 0.9, 1.0)
+    full = hybrid_loss(logits, labels, log_pi, baseline, 0.9, 1.0)
+    torch.testing.assert_close(both["loss_policy"], only["loss_policy"])  # the policy learns from sampled episodes
+    torch.testing.assert_close(both["loss_baseline"], only["loss_baseline"])
+    torch.testing.assert_close(both["loss_ce"], full["loss_ce"])  # the classifier from every episode
+    with pytest.raises(ValueError, match="model.mean_action_share=1.0: must be in"):
+        HapticGlance(mean_action_share=1.0)
+
+
 def test_side_scan_leans_both_ways_first_then_to_the_side_its_touches_show(data):
     model = HapticGlance(n_probes=6, policy="line_scan", scan_span=0.5, scan_order="centre_out", scan_side=0.6)
     points = torch.zeros(4, 6, 4)  # 0: both first probes touch, -x higher; 1: only -x; 2: nothing; 3: probe 4 (-x)

@@ -43,12 +43,14 @@ def relative_to_first_touch(points: Tensor) -> Tensor:
 
 def hybrid_loss(logits: Tensor, labels: Tensor, log_pi: Tensor | None, baseline: Tensor | None, gamma: float,
                 beta: float, normalize_advantage: bool = False,
-                reward: Literal["correct", "log_gain"] = "correct") -> dict[str, Tensor]:
+                reward: Literal["correct", "log_gain"] = "correct", sampled: Tensor | None = None) -> dict[str, Tensor]:
     """The hybrid update rule, eq. (6), as a loss to minimise; every term is returned for logging.
 
     logits (B, N, C): prediction after each probe; log_pi (B, N): log pi(a_k | s_k) of the detached requests;
     baseline (B, N): b_k from detached states. Without a policy to train (random, line scan) only the
-    cross-entropy remains.
+    cross-entropy remains. sampled (B,) bool, beyond the paper: the episodes whose probes were drawn from the
+    policy; only they train the policy and the baseline (the others were probed with its mean action, and
+    REINFORCE needs sampled actions), while the cross-entropy takes every episode.
     """
     n_probes = logits.shape[1]
     correct = (logits.argmax(-1) == labels[:, None]).float()
@@ -63,6 +65,8 @@ def hybrid_loss(logits: Tensor, labels: Tensor, log_pi: Tensor | None, baseline:
     if log_pi is None:
         terms["loss"] = cross_entropy
         return terms
+    if sampled is not None:
+        rewards, log_pi, baseline = rewards[sampled], log_pi[sampled], baseline[sampled]
     returns = discounted_returns(rewards, gamma)  # G_k, eq. (3); rewards carry no gradient
     advantage = (returns - baseline).detach()  # (G_k - b_k): the baseline reduces variance, never the gradient path
     if normalize_advantage:  # beyond the paper: unit-scale advantages per probe index keep eq. (3) well scaled
@@ -105,7 +109,7 @@ class HapticGlance(pl.LightningModule):
                  normalize_advantage: bool = False, policy_reads_detached: bool = False,
                  reward: Literal["correct", "log_gain"] = "correct", policy_lr_scale: float = 1.0,
                  prior: Literal["none", "line_scan"] = "none", prior_lean: float = 0.0, prior_exact: bool = False,
-                 prior_anchor: float = 0.0, scan_span: float = 1.0,
+                 prior_anchor: float = 0.0, mean_action_share: float = 0.0, scan_span: float = 1.0,
                  scan_order: Literal["sweep", "centre_out"] = "sweep", scan_lean: float = 0.0, scan_follow: float = 0.0,
                  scan_cross: float = 0.0, scan_reach: float = 0.0, scan_side: float = 0.0,
                  point_frame: Literal["episode", "first_touch"] = "episode", touch_set: bool = False,
@@ -177,6 +181,9 @@ class HapticGlance(pl.LightningModule):
             raise ValueError(f"model.prior_lean={prior_lean}: needs model.prior: line_scan (it shapes that prior)")
         if prior_exact and prior != "line_scan":
             raise ValueError("model.prior_exact=True: needs model.prior: line_scan (it starts the policy there)")
+        if not 0.0 <= mean_action_share < 1.0:
+            raise ValueError(f"model.mean_action_share={mean_action_share}: must be in [0, 1) (the share of each "
+                             "training batch probed with the policy's mean action; the rest trains the policy)")
         if prior_anchor < 0.0:
             raise ValueError(f"model.prior_anchor={prior_anchor}: must be >= 0 (the weight of the policy mean's squared "
                              "distance from its prior; 0: none)")
@@ -195,7 +202,7 @@ class HapticGlance(pl.LightningModule):
             self.sim = None
 
     # -- rollout -------------------------------------------------------------------------------------
-    def next_actions(self, k: int, points: Tensor, rep_sum: Tensor | None, deterministic: bool,
+    def next_actions(self, k: int, points: Tensor, rep_sum: Tensor | None, deterministic: bool | Tensor,
                      generator: torch.Generator, follow_scan: bool = False) -> Tensor:
         """Request k + 1 of every episode (k may be 0), given the points (B, N, 4) of the rollout so far (only
         points[:, :k] are read); a learned policy reads the sum of the representations after probes 1..k, which
@@ -331,10 +338,10 @@ class HapticGlance(pl.LightningModule):
         return torch.stack([py, ux, torch.zeros(n), uz], 1)
 
     @torch.no_grad()
-    def rollout(self, labels: Tensor, poses: Tensor, seed: int, deterministic: bool = False,
+    def rollout(self, labels: Tensor, poses: Tensor, seed: int, deterministic: bool | Tensor = False,
                 follow_scan: bool = False) -> Rollout:
         """Probe B episodes N times with the current policy (or the fixed scan: follow_scan); the batch seed drives
-        sampling and sensor noise."""
+        sampling and sensor noise. deterministic: the mean action, in every episode or in the (B,) True ones."""
         sim, n = self.sim, self.hparams.n_probes
         batch = len(labels)
         sim.reset(labels.cpu().numpy(), poses.cpu().numpy(), seed=seed)
@@ -366,9 +373,10 @@ class HapticGlance(pl.LightningModule):
         return relative_to_first_touch(points) if self.hparams.point_frame == "first_touch" else points
 
     # -- loss ----------------------------------------------------------------------------------------
-    def evaluate(self, rollout: Rollout, labels: Tensor, learn_policy: bool = True) -> tuple[dict[str, Tensor], Tensor]:
+    def evaluate(self, rollout: Rollout, labels: Tensor, learn_policy: bool = True,
+                 sampled: Tensor | None = None) -> tuple[dict[str, Tensor], Tensor]:
         """Forward pass over a finished rollout: the loss terms (without the policy's when not learn_policy) and
-        the logits (B, N, C)."""
+        the logits (B, N, C). sampled (B,) bool: the episodes that train the policy (default: all)."""
         rep = self.encoder(rollout.requests, self.encoder_points(rollout.points))
         logits = self.classifier(rep)
         if self.touch_set is not None:
@@ -384,7 +392,7 @@ class HapticGlance(pl.LightningModule):
         # the gradient of log N grows as 1 / std: a shrinking std must not let the policy term crowd the others
         # out of the clipped gradient
         beta = h.beta * float(self.location.std_scale)
-        terms = hybrid_loss(logits, labels, log_pi, baseline, h.gamma, beta, h.normalize_advantage, h.reward)
+        terms = hybrid_loss(logits, labels, log_pi, baseline, h.gamma, beta, h.normalize_advantage, h.reward, sampled)
         if log_pi is not None:
             mu, sigma = self.location.distribution(states, rollout.actions, offsets)
             sigma = sigma.detach().mean((0, 1))  # too large a std is the usual cause of poor accuracy: watch it
@@ -405,8 +413,16 @@ class HapticGlance(pl.LightningModule):
         # so that the classifier learns on steady probes before the policy starts to move them
         warming_up = self.hparams.policy == "learned" and self.global_step < self.hparams.policy_warmup_steps
         self.location.std_scale.fill_(self.std_schedule())
-        rollout = self.rollout(labels, batch["poses"], int(batch["seed"]), follow_scan=warming_up)
-        terms, _ = self.evaluate(rollout, labels, learn_policy=not warming_up)
+        # beyond the paper: a share of the episodes is probed with the policy's mean action, the probes it is tested
+        # with, so that the classifier does not learn only behind the exploration noise of the sampled ones
+        mean_rows = None
+        if self.hparams.policy == "learned" and not warming_up and self.hparams.mean_action_share:
+            n_mean = min(round(self.hparams.mean_action_share * len(labels)), len(labels) - 1)  # >= 1 sampled
+            mean_rows = torch.arange(len(labels)) < n_mean
+        rollout = self.rollout(labels, batch["poses"], int(batch["seed"]), follow_scan=warming_up,
+                               deterministic=False if mean_rows is None else mean_rows)
+        terms, _ = self.evaluate(rollout, labels, learn_policy=not warming_up,
+                                 sampled=None if mean_rows is None else ~mean_rows.to(labels.device))
         if not torch.isfinite(terms["loss"]):
             raise FloatingPointError(f"non-finite loss {terms['loss'].item()} at global step {self.global_step} "
                                      f"(terms: { {k: round(v.item(), 4) for k, v in terms.items()} })")

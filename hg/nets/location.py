@@ -83,17 +83,19 @@ class LocationNetwork(nn.Module):
         return torch.tanh(mu), sigma * self.std_scale
 
     def sample(
-        self, state: Tensor, deterministic: bool = False, generator: torch.Generator | None = None,
+        self, state: Tensor, deterministic: bool | Tensor = False, generator: torch.Generator | None = None,
         offset: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Draw a_k component by component as in eq. (1); returns the raw (unsquashed, detached) action and
-        its (mu, sigma). deterministic=True gives the mean-action policy."""
+        its (mu, sigma). deterministic=True gives the mean-action policy; a bool tensor of the state's batch shape
+        gives it in its True rows only (the others draw the same numbers as without it)."""
         shape = (*state.shape[:-1], self.action_dim)
-        eps = (
-            torch.zeros(shape, device=state.device, dtype=state.dtype)
-            if deterministic
-            else torch.randn(shape, generator=generator, device=state.device, dtype=state.dtype)
-        )
+        if isinstance(deterministic, Tensor) or not deterministic:
+            eps = torch.randn(shape, generator=generator, device=state.device, dtype=state.dtype)
+            if isinstance(deterministic, Tensor):
+                eps = eps.masked_fill(deterministic[..., None].to(state.device), 0.0)
+        else:
+            eps = torch.zeros(shape, device=state.device, dtype=state.dtype)
         action = torch.zeros_like(eps)
         for j in range(self.action_dim):
             mu, sigma = self.distribution(state, action, offset)
