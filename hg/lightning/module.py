@@ -386,7 +386,7 @@ class HapticGlance(pl.LightningModule):
             # s_k from which request k was drawn; beyond the paper, the policy may read it without training the encoder
             states = self.location.states(rep.detach() if self.hparams.policy_reads_detached else rep)
             offsets = self.prior_offsets(rollout.points)
-            log_pi = self.location.log_prob(states, rollout.actions, offsets)
+            log_pi, mu, sigma = self.location.log_prob_and_moments(states, rollout.actions, offsets)
             baseline = self.baseline(states.detach())
         h = self.hparams
         # the gradient of log N grows as 1 / std: a shrinking std must not let the policy term crowd the others
@@ -394,7 +394,6 @@ class HapticGlance(pl.LightningModule):
         beta = h.beta * float(self.location.std_scale)
         terms = hybrid_loss(logits, labels, log_pi, baseline, h.gamma, beta, h.normalize_advantage, h.reward, sampled)
         if log_pi is not None:
-            mu, sigma = self.location.distribution(states, rollout.actions, offsets)
             sigma = sigma.detach().mean((0, 1))  # too large a std is the usual cause of poor accuracy: watch it
             terms.update({f"std_{c}": sigma[i] for i, c in enumerate(COMPONENTS)})
             if offsets is not None:

@@ -106,6 +106,11 @@ class LocationNetwork(nn.Module):
     def log_prob(self, state: Tensor, action: Tensor, offset: Tensor | None = None) -> Tensor:
         """log pi(a_k | s_k) summed over components, (..., D), (..., A) -> (...). The action is detached: the
         gradient flows only through mu and sigma, which gives eq. (4)/(5) and, weighted, eq. (3)."""
+        return self.log_prob_and_moments(state, action, offset)[0]
+
+    def log_prob_and_moments(self, state: Tensor, action: Tensor, offset: Tensor | None = None
+                             ) -> tuple[Tensor, Tensor, Tensor]:
+        """log_prob with the (mu, sigma) it was taken under, for a caller that needs both from one pass."""
         action = action.detach()
         mu, sigma = self.distribution(state, action, offset)
-        return torch.distributions.Normal(mu, sigma).log_prob(action).sum(-1)
+        return torch.distributions.Normal(mu, sigma).log_prob(action).sum(-1), mu, sigma
