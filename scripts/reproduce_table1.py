@@ -105,6 +105,11 @@ ROWS = {
         "configs/pcrn_fc_centre_touchset_warmup_wide_std_decay_exact_mean_share.yaml",
         "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth, "
         "policy starting exactly on the scan, half of each batch probed with its mean action (beyond the paper)"),
+    "pcrn_fc_centre_touchset_warmup_wide_std_decay_exact_anchor_mean_share": Row(
+        "configs/pcrn_fc_centre_touchset_warmup_wide_std_decay_exact_anchor_mean_share.yaml",
+        "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth, "
+        "policy starting exactly on the scan and held near it, half of each batch probed with its mean action "
+        "(beyond the paper)"),
 }
 
 # Table 1 of Riou et al. (ICASSP 2021): accuracy after k probes, 4 objects, held-out poses (no entry for k=1).
