@@ -129,6 +129,22 @@ def test_std_schedule_shrinks_the_policy_std_and_travels_with_the_checkpoint(dat
                    limit_val_batches=0, accelerator="cpu").fit(endless, datamodule=data)
 
 
+def test_lr_schedule_falls_to_its_final_share_at_the_last_step(data):
+    model = make_model(data, policy_lr_scale=0.3, lr_final_scale=0.1)
+    trainer = pl.Trainer(max_steps=4, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                         enable_model_summary=False, limit_val_batches=0, accelerator="cpu")
+    trainer.fit(model, datamodule=data)
+    rest, location = trainer.optimizers[0].param_groups
+    assert rest["lr"] == pytest.approx(1e-3 * 0.1) and location["lr"] == pytest.approx(1e-3 * 0.3 * 0.1)
+    steady = make_model(data)  # the default keeps the paper's constant rate
+    assert isinstance(steady.configure_optimizers(), torch.optim.Adam)
+    with pytest.raises(ValueError, match="model.lr_final_scale=0"):
+        HapticGlance(lr_final_scale=0)
+    with pytest.raises(ValueError, match="needs trainer.max_steps"):
+        pl.Trainer(max_epochs=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                   limit_val_batches=0, accelerator="cpu").fit(make_model(data, lr_final_scale=0.5), datamodule=data)
+
+
 def test_policy_term_uses_detached_advantage():
     logits = torch.randn(5, 3, 4, requires_grad=True)
     labels = torch.randint(4, (5,))

@@ -12,7 +12,8 @@ import torch
 TINY = str(Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml")
 STEPS = 400
 ARGS = ["--config", TINY, "--trainer.max_steps", str(STEPS), "--trainer.val_check_interval", "50",
-        "--last_checkpoint.every_n_train_steps", "20", "--trainer.logger", "false"]
+        "--last_checkpoint.every_n_train_steps", "20", "--trainer.logger", "false",
+        "--model.lr_final_scale", "0.5"]  # the learning-rate schedule's place must survive the kill too
 ENV = {**os.environ, "WANDB_MODE": "disabled"}
 
 

@@ -114,7 +114,7 @@ class HapticGlance(pl.LightningModule):
                  scan_cross: float = 0.0, scan_reach: float = 0.0, scan_side: float = 0.0,
                  point_frame: Literal["episode", "first_touch"] = "episode", touch_set: bool = False,
                  touch_set_net: Literal["small", "wide"] = "small", policy_warmup_steps: int = 0,
-                 std_final_scale: float = 1.0) -> None:
+                 std_final_scale: float = 1.0, lr_final_scale: float = 1.0) -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -123,6 +123,9 @@ class HapticGlance(pl.LightningModule):
         if not 0.0 < std_final_scale <= 1.0:
             raise ValueError(f"model.std_final_scale={std_final_scale}: must be in (0, 1] (the policy's std at the "
                              "last training step, as a share of its learned value)")
+        if not 0.0 < lr_final_scale <= 1.0:
+            raise ValueError(f"model.lr_final_scale={lr_final_scale}: must be in (0, 1] (the learning rate at the last "
+                             "training step, as a share of model.lr)")
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"model.gamma={gamma}: the discount must be in [0, 1]")
         self.save_hyperparameters()
@@ -429,6 +432,7 @@ class HapticGlance(pl.LightningModule):
         self.log_dict({f"train/{k}": v for k, v in terms.items()}, batch_size=size, prog_bar=False)
         self.log("train/touch_rate", rollout.points[..., 3].mean(), batch_size=size)
         self.log("train/reach_rate", rollout.reached.float().mean(), batch_size=size)
+        self.log("train/lr", self.optimizers().param_groups[0]["lr"], batch_size=size)
         return terms["loss"]
 
     def std_schedule(self) -> float:
@@ -473,10 +477,25 @@ class HapticGlance(pl.LightningModule):
     def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> dict[bool, tuple[Rollout, Tensor]]:
         return self._eval_step(batch, "test")
 
-    def configure_optimizers(self) -> torch.optim.Optimizer:
-        """Adam; beyond the paper, the location network may learn on a slower time scale than the classifier."""
+    def configure_optimizers(self) -> torch.optim.Optimizer | dict:
+        """Adam; beyond the paper, the location network may learn on a slower time scale than the classifier, and
+        every learning rate may fall along a half cosine to `lr_final_scale` of itself at the last step: a classifier
+        fed fresh episodes every step keeps some of the noise of its last updates unless the steps shrink."""
         location = list(self.location.parameters())  # a list, not a set: the order must survive a resume
         rest = [p for p in self.parameters() if all(p is not q for q in location)]
-        return torch.optim.Adam([{"params": rest},
-                                 {"params": location, "lr": self.hparams.lr * self.hparams.policy_lr_scale}],
-                                lr=self.hparams.lr)
+        optimizer = torch.optim.Adam([{"params": rest},
+                                      {"params": location, "lr": self.hparams.lr * self.hparams.policy_lr_scale}],
+                                     lr=self.hparams.lr)
+        final = self.hparams.lr_final_scale
+        if final == 1.0:
+            return optimizer
+        last = self.trainer.max_steps
+        if last is None or last < 1:
+            raise ValueError(f"model.lr_final_scale={final} needs trainer.max_steps (the schedule ends there), got "
+                             f"trainer.max_steps={last}")
+
+        def factor(step: int) -> float:
+            return final + (1.0 - final) * 0.5 * (1.0 + math.cos(math.pi * min(step / last, 1.0)))
+
+        return {"optimizer": optimizer,
+                "lr_scheduler": {"scheduler": torch.optim.lr_scheduler.LambdaLR(optimizer, factor), "interval": "step"}}
