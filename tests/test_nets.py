@@ -181,6 +181,8 @@ def test_touch_set_ignores_missed_probes() -> None:
     changed[:, [0, 2, 5], :3] += 5.0
     logits = clf(points)
     assert torch.isfinite(logits).all()
+    logits.square().sum().backward()  # the empty first prefix must not poison the gradient either
+    assert all(torch.isfinite(p.grad).all() for p in clf.parameters())
     assert torch.allclose(clf(changed), logits)
     assert not torch.allclose(logits[:, 0], logits[:, 1])  # the first touch changes the prediction
 

@@ -105,19 +105,28 @@ class TouchSetClassifier(nn.Module):
         return cls(n_classes, shared=(64, 128, 512), misses=True, layer_norm=True)
 
     def forward(self, points: Tensor) -> Tensor:
-        """points (B, N, 4): X, Y, Z and the contact flag T -> logits (B, N, n_classes)."""
-        n = points.shape[1]
+        """points (B, N, 4): X, Y, Z and the contact flag T -> logits (B, N, n_classes).
+
+        The shared MLP runs once per (prefix k, probe j <= k) pair, N (N + 1) / 2 of them, not N x N: a point's
+        features depend on the prefix (its centre), and the pairs with j > k would only be masked out. This MLP is
+        most of a training step's time in the touch-set rows."""
+        b, n = points.shape[:2]
         xyz, touched = points[..., :3], (points[..., 3] > 0.5).to(points.dtype)
         prefix = torch.ones(n, n, dtype=points.dtype, device=points.device).tril()  # [k, j]: probe j <= k
         mask = prefix * touched[:, None, :]  # (B, K, J): probe j touched and is in prefix k
         count = mask.sum(-1, keepdim=True)  # (B, K, 1)
         centre = (mask @ xyz) / count.clamp(min=1)  # (B, K, 3)
-        relative = (xyz[:, None] - centre[:, :, None]) * self.scale  # (B, K, J, 3)
-        pooled = mask  # (B, K, J): the probes pooled into prefix k
-        if self.misses:
-            pooled = prefix.expand_as(mask)
-            relative = torch.cat([relative, touched[:, None, :, None].expand(-1, n, -1, 1)], -1)
-        features = self.shared(relative).masked_fill(pooled[..., None] < 0.5, float("-inf")).amax(2)  # (B, K, F)
-        features = torch.where(pooled.sum(-1, keepdim=True) > 0, features, torch.zeros_like(features))
+        k, j = torch.tril_indices(n, n, device=points.device)  # the pairs, prefix by prefix
+        relative = (xyz[:, j] - centre[:, k]) * self.scale  # (B, P, 3)
+        if self.misses:  # every probe of the prefix is pooled
+            relative = torch.cat([relative, touched[:, j, None]], -1)
+            pooled, empty = torch.ones_like(touched[:, j]), torch.zeros_like(count, dtype=torch.bool)
+        else:  # only the touched ones
+            pooled, empty = touched[:, j], count == 0
+        features = self.shared(relative).masked_fill(pooled[..., None] < 0.5, float("-inf"))  # (B, P, F)
+        width = features.shape[-1]
+        features = features.new_full((b, n, width), float("-inf")).scatter_reduce(
+            1, k[None, :, None].expand(b, -1, width), features, "amax")  # max over each prefix's pairs: (B, K, F)
+        features = torch.where(empty, torch.zeros_like(features), features)
         share = count / torch.arange(1, n + 1, dtype=points.dtype, device=points.device)[:, None]
         return self.head(torch.cat([features, share], -1))
