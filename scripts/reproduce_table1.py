@@ -77,6 +77,9 @@ ROWS = {
     "centre_scan_touchset_wide_lr_decay": Row("configs/centre_scan_touchset_wide_lr_decay.yaml",
                                               "centre-out scan + PCRN-FC + wide touch set, learning rate falling to "
                                               "5% (beyond the paper)", learned=False),
+    "centre_scan_touchset_wide_ema": Row("configs/centre_scan_touchset_wide_ema.yaml",
+                                         "centre-out scan + PCRN-FC + wide touch set, moving average of the weights "
+                                         "(beyond the paper)", learned=False),
     "pcrn_fc_centre_touchset_warmup_wide": Row("configs/pcrn_fc_centre_touchset_warmup_wide.yaml",
                                                "PCRN-FC+ from the centre-out scan + wide touch set, policy from step "
                                                "4000 (beyond the paper)"),
@@ -117,6 +120,10 @@ ROWS = {
         "configs/pcrn_fc_centre_touchset_warmup_wide_std_decay_exact_anchor_lr_decay.yaml",
         "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth, "
         "policy starting exactly on the scan and held near it, learning rate falling to 5% (beyond the paper)"),
+    "pcrn_fc_centre_touchset_warmup_wide_std_decay_exact_anchor_ema": Row(
+        "configs/pcrn_fc_centre_touchset_warmup_wide_std_decay_exact_anchor_ema.yaml",
+        "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth, "
+        "policy starting exactly on the scan and held near it, moving average of the weights (beyond the paper)"),
 }
 
 # Table 1 of Riou et al. (ICASSP 2021): accuracy after k probes, 4 objects, held-out poses (no entry for k=1).

@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 import pytorch_lightning as pl
 import torch
+from pytorch_lightning.callbacks import ModelCheckpoint
 
 from hg.lightning import HapticGlance, ProbeDataModule, discounted_returns, hybrid_loss
+from hg.lightning.callbacks import WeightEMA
 from hg.lightning.module import relative_to_first_touch
 from hg.sim.scene import Scene
 
@@ -143,6 +145,39 @@ def test_lr_schedule_falls_to_its_final_share_at_the_last_step(data):
     with pytest.raises(ValueError, match="needs trainer.max_steps"):
         pl.Trainer(max_epochs=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
                    limit_val_batches=0, accelerator="cpu").fit(make_model(data, lr_final_scale=0.5), datamodule=data)
+
+
+def test_weight_ema_scores_the_average_and_keeps_the_current_std_scale(data, tmp_path):
+    class Record(pl.Callback):  # the live weights after each optimizer step
+        def __init__(self):
+            self.steps = []
+
+        def on_train_batch_end(self, trainer, module, *args):
+            self.steps.append([p.detach().clone() for p in module.parameters()])
+
+    model, record = make_model(data, prior="line_scan", std_final_scale=0.1), Record()
+    checkpoint = ModelCheckpoint(dirpath=tmp_path, every_n_train_steps=2, save_top_k=-1,
+                                 filename="step{step}", auto_insert_metric_name=False)
+    trainer = pl.Trainer(max_steps=3, logger=False, enable_progress_bar=False, enable_model_summary=False,
+                         limit_val_batches=0, accelerator="cpu", callbacks=[WeightEMA(decay=0.5), record, checkpoint])
+    trainer.fit(model, datamodule=data)
+    first, second, third = record.steps
+    average = [0.5 * (0.5 * a + 0.5 * b) + 0.5 * c for a, b, c in zip(first, second, third)]
+    for name, (p, expected, live) in zip(dict(model.named_parameters()), zip(model.parameters(), average, third)):
+        torch.testing.assert_close(p.detach(), expected, msg=f"{name} is not the moving average")
+    assert any(not torch.equal(p, live) for p, live in zip(average, third))  # the average is not the live model
+    assert model.location.std_scale.item() == pytest.approx(1 - 0.9 * 2 / 3)  # the schedule's, not averaged
+    # testing a checkpoint after fit, as hg/lightning/experiment.py does, scores its average, not its live weights
+    saved = torch.load(tmp_path / "step2.ckpt", weights_only=False)
+    assert not torch.equal(saved["state_dict"]["classifier.net.0.weight"],
+                           saved["current_model_state"]["classifier.net.0.weight"])
+    model.sim = data.make_simulator()  # fit's teardown closed it
+    trainer.test(model, datamodule=data, ckpt_path=tmp_path / "step2.ckpt", verbose=False,
+                 weights_only=False)
+    for name, p in model.state_dict().items():
+        torch.testing.assert_close(p, saved["state_dict"][name], msg=f"{name}: tested weights are not the average")
+    with pytest.raises(ValueError, match="WeightEMA decay=1"):
+        WeightEMA(decay=1)
 
 
 def test_policy_term_uses_detached_advantage():

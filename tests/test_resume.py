@@ -13,7 +13,9 @@ TINY = str(Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml")
 STEPS = 400
 ARGS = ["--config", TINY, "--trainer.max_steps", str(STEPS), "--trainer.val_check_interval", "50",
         "--last_checkpoint.every_n_train_steps", "20", "--trainer.logger", "false",
-        "--model.lr_final_scale", "0.5"]  # the learning-rate schedule's place must survive the kill too
+        # the learning-rate schedule's place and the weights' moving average must survive the kill too
+        "--model.lr_final_scale", "0.5", "--trainer.callbacks+=hg.lightning.callbacks.WeightEMA",
+        "--trainer.callbacks.decay=0.9"]
 ENV = {**os.environ, "WANDB_MODE": "disabled"}
 
 

@@ -1,4 +1,5 @@
-"""Callbacks: per-probe accuracy files and plots, and the run configuration saved where the run lives."""
+"""Callbacks: per-probe accuracy files and plots, the run configuration saved where the run lives, and a moving
+average of the weights."""
 from __future__ import annotations
 
 import csv
@@ -12,9 +13,12 @@ import matplotlib.pyplot as plt  # noqa: E402
 import pytorch_lightning as pl  # noqa: E402
 import yaml  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
+from pytorch_lightning.callbacks import WeightAveraging  # noqa: E402
 from pytorch_lightning.cli import SaveConfigCallback  # noqa: E402
 from pytorch_lightning.loggers import WandbLogger  # noqa: E402
+from pytorch_lightning.trainer.states import TrainerFn  # noqa: E402
 from pytorch_lightning.utilities import rank_zero_only  # noqa: E402
+from torch.optim.swa_utils import get_ema_multi_avg_fn  # noqa: E402
 
 from hg.atomic import write_atomic  # noqa: E402
 
@@ -125,3 +129,42 @@ class RunDirSaveConfig(SaveConfigCallback):
             write_atomic(run_dir(trainer) / self.config_filename, config)
             if trainer.logger is not None:
                 trainer.logger.log_hyperparams({"config": yaml.safe_load(config)})
+
+
+class WeightEMA(WeightAveraging):
+    """Beyond the paper: validate, test and checkpoint an exponential moving average of the weights (`decay` per
+    step), Lightning's WeightAveraging. Why: fed fresh episodes at a constant learning rate, the model keeps
+    moving, its validation accuracy swings from one check to the next, and the best checkpoint is picked on those
+    swings. A checkpoint's state_dict holds the average (the live weights ride along for resuming), so `hg test`
+    and the scripts score the average. Buffers are not averaged but copied: the policy's std scale must be the
+    schedule's current one. Add it to a config's `trainer.callbacks`."""
+
+    def __init__(self, decay: float = 0.999) -> None:
+        if not 0.0 < decay < 1.0:
+            raise ValueError(f"WeightEMA decay={decay}: must be in (0, 1) (the share of the average kept per step)")
+        super().__init__(use_buffers=False, multi_avg_fn=get_ema_multi_avg_fn(decay))
+        self.decay = decay
+
+    def on_train_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs, batch,
+                           batch_idx: int) -> None:
+        super().on_train_batch_end(trainer, pl_module, outputs, batch, batch_idx)
+        for average, current in zip(self._average_model.module.buffers(), pl_module.buffers()):
+            average.copy_(current)
+
+    # Lightning's callback also swaps and reloads outside fitting: a `trainer.test(ckpt_path=...)` after `fit` (as
+    # hg/lightning/experiment.py does) would load the checkpoint's live weights over its average, and a validate
+    # would swap in the average left from training. Outside fitting the module keeps what the checkpoint holds.
+    def _fitting(self, trainer: pl.Trainer) -> bool:
+        return trainer.state.fn == TrainerFn.FITTING
+
+    def on_validation_epoch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        if self._fitting(trainer):
+            super().on_validation_epoch_start(trainer, pl_module)
+
+    def on_validation_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        if self._fitting(trainer):
+            super().on_validation_epoch_end(trainer, pl_module)
+
+    def on_load_checkpoint(self, trainer: pl.Trainer, pl_module: pl.LightningModule, checkpoint: dict) -> None:
+        if self._fitting(trainer):  # resuming: the live weights and the average both come back
+            super().on_load_checkpoint(trainer, pl_module, checkpoint)
