@@ -143,7 +143,6 @@ class WeightEMA(WeightAveraging):
         if not 0.0 < decay < 1.0:
             raise ValueError(f"WeightEMA decay={decay}: must be in (0, 1) (the share of the average kept per step)")
         super().__init__(use_buffers=False, multi_avg_fn=get_ema_multi_avg_fn(decay))
-        self.decay = decay
 
     def on_train_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs, batch,
                            batch_idx: int) -> None:

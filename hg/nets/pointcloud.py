@@ -119,14 +119,13 @@ class TouchSetClassifier(nn.Module):
         k, j = torch.tril_indices(n, n, device=points.device)  # the pairs, prefix by prefix
         relative = (xyz[:, j] - centre[:, k]) * self.scale  # (B, P, 3)
         if self.misses:  # every probe of the prefix is pooled
-            relative = torch.cat([relative, touched[:, j, None]], -1)
-            pooled, empty = torch.ones_like(touched[:, j]), torch.zeros_like(count, dtype=torch.bool)
+            features = self.shared(torch.cat([relative, touched[:, j, None]], -1))  # (B, P, F)
         else:  # only the touched ones
-            pooled, empty = touched[:, j], count == 0
-        features = self.shared(relative).masked_fill(pooled[..., None] < 0.5, float("-inf"))  # (B, P, F)
+            features = self.shared(relative).masked_fill(touched[:, j, None] < 0.5, float("-inf"))
         width = features.shape[-1]
         features = features.new_full((b, n, width), float("-inf")).scatter_reduce(
             1, k[None, :, None].expand(b, -1, width), features, "amax")  # max over each prefix's pairs: (B, K, F)
-        features = torch.where(empty, torch.zeros_like(features), features)
+        if not self.misses:  # a prefix without a touch pools to zeros
+            features = torch.where(count == 0, torch.zeros_like(features), features)
         share = count / torch.arange(1, n + 1, dtype=points.dtype, device=points.device)[:, None]
         return self.head(torch.cat([features, share], -1))
