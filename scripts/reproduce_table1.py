@@ -77,6 +77,9 @@ ROWS = {
     "centre_scan_touchset_wide_lr_decay": Row("configs/centre_scan_touchset_wide_lr_decay.yaml",
                                               "centre-out scan + PCRN-FC + wide touch set, learning rate falling to "
                                               "5% (beyond the paper)", learned=False),
+    "centre_scan_touchset_wide_long_lr_decay": Row("configs/centre_scan_touchset_wide_long_lr_decay.yaml",
+                                                   "centre-out scan + PCRN-FC + wide touch set, 16000 steps, learning "
+                                                   "rate falling to 5% (beyond the paper)", learned=False),
     "centre_scan_touchset_wide_ema": Row("configs/centre_scan_touchset_wide_ema.yaml",
                                          "centre-out scan + PCRN-FC + wide touch set, moving average of the weights "
                                          "(beyond the paper)", learned=False),
