@@ -22,7 +22,8 @@ towards the object's centre, by a fixed lean (a number, in request units as `mod
 lean that takes it under the centre (`exact`). Not a policy: a bound on what a policy that picks the side (and
 the lean) of each probe from what it touched could reach with the same scan. `--fit-target side` (with
 `--fit-probes K`) asks instead how well a scan's first K probes tell that side, on the episodes whose object lies
-at least 5 cm off the line.
+at least 5 cm off the line: fitted, and by the rule a side-picking scan follows (the side the first leaning probe
+that touched leans to; no fit, so no split's base rates in it).
 
     .venv/bin/python scripts/scan_coverage.py                        # 512 val episodes, ideal mode
     .venv/bin/python scripts/scan_coverage.py --mode arm --split test
@@ -38,9 +39,9 @@ at least 5 cm off the line.
 
 Last line: JSON {"<order>-span<span>[-lean<lean>][-follow<follow>][-cross<cross>][-reach<reach>][-side<side>]
 [-aim<aim>]" or "<checkpoint>": {"touches": .., "touches_first_half": .., "any_touch": .., "tilt_deg": ..,
-"towards_object": ..[, "fit_accuracy" or "fit_side_accuracy": ..][, "accuracy": .., "by_touches": {"0-1":
-{"share": .., "accuracy": ..}, ...}, "by_offset_cm": {"0-5": {...}, "5-10": .., "10+": ..}][, "prior_shift_rms":
-{"py": .., "ux": .., "uy": .., "uz": ..}]}, ...}.
+"towards_object": ..[, "fit_accuracy" or "fit_side_accuracy": ..][, "first_touch_side": {"share": .., "accuracy":
+..}][, "accuracy": .., "by_touches": {"0-1": {"share": .., "accuracy": ..}, ...}, "by_offset_cm": {"0-5": {...},
+"5-10": .., "10+": ..}][, "prior_shift_rms": {"py": .., "ux": .., "uy": .., "uz": ..}]}, ...}.
 """
 from __future__ import annotations
 
@@ -202,6 +203,20 @@ def coverage(touches: np.ndarray, directions: np.ndarray, offsets: np.ndarray) -
             "towards_object": round(float(towards[leaning].mean()), 3) if leaning.any() else None}
 
 
+def first_touch_side(touches: np.ndarray, directions: np.ndarray, offsets: np.ndarray, probes: int | None = None
+                     ) -> dict:
+    """The rule a side-picking scan follows, scored without a fit: the object lies on the side the first leaning
+    probe (of the first `probes`) that touched leans to. Over the episodes whose object lies at least 5 cm off
+    the line: the share with such a touch, and how often its side is the object's (None if none has one)."""
+    far = np.abs(offsets) >= SIDE_MIN_OFFSET
+    lean = np.sign(directions[:, :probes, 0]) * (np.abs(directions[:, :probes, 0]) > np.sin(np.radians(1.0)))
+    hit = (touches[:, :probes] > 0.5) & (lean != 0)
+    told = hit.any(1) & far
+    side = lean[np.arange(len(lean)), hit.argmax(1)]
+    return {"share": round(float(told.sum() / max(far.sum(), 1)), 3),
+            "accuracy": round(float((side[told] == np.sign(offsets[told])).mean()), 3) if told.any() else None}
+
+
 def _is_number(text: str) -> bool:
     try:
         return float(text) == float(text)
@@ -292,6 +307,8 @@ def main() -> None:
         r = results[name] = coverage(touches, directions, offsets)
         if shift is not None:
             r["prior_shift_rms"] = shift
+        if args.fit_target == "side":
+            r["first_touch_side"] = first_touch_side(touches, directions, offsets, args.fit_probes)
         if args.fit and name in scans:
             key = "fit_accuracy" if args.fit_target == "class" else "fit_side_accuracy"
             r[key] = round(fit_accuracy(model, sim, regions, args.fit, points,
@@ -314,6 +331,12 @@ def main() -> None:
         if "prior_shift_rms" in r:
             print(f"{name}: mean requests off the prior's, rms per component: "
                   + ", ".join(f"{c} {v:.3f}" for c, v in r["prior_shift_rms"].items()))
+    for name, r in results.items():
+        if "first_touch_side" in r:
+            side = r["first_touch_side"]
+            print(f"{name}: in {side['share']:.3f} of the episodes {100 * SIDE_MIN_OFFSET:g}+ cm off the line a leaning "
+                  f"probe touched, and the first such probe's lean names their side "
+                  + ("-" if side["accuracy"] is None else f"{side['accuracy']:.3f}") + " of the time")
     sim.close()
     print(json.dumps(results))
 

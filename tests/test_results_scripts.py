@@ -202,6 +202,12 @@ def test_oracle_aimed_scan_passes_under_the_object_centre_or_leans_towards_it():
     assert coverage.coverage(np.ones((16, 4)), fixed, -offsets)["towards_object"] == 0.0
     # --fit-target side: probes leaning to the object's side tell it; straight probes cannot (mirror images)
     assert (coverage.fit_labels("side", labels, poses, sim.scene) == (offsets > 0)).all()
+    # the side-picking rule without a fit: a lean to the object's side names it, a straight probe names nothing
+    told = {aim: coverage.first_touch_side(probes[aim][0][..., 3].numpy(), probes[aim][1], offsets)
+            for aim in ("0", "0.6")}
+    assert told["0"] == {"share": 0.0, "accuracy": None} and told["0.6"]["share"] > 0.5
+    assert told["0.6"]["accuracy"] == 1.0
+    assert coverage.first_touch_side(probes["0.6"][0][..., 3].numpy(), -probes["0.6"][1], offsets)["accuracy"] == 0.0
     for bad_args, message in ((["--fit-target", "side", "--fit-net", "touch_set"], "needs --fit-net pointnet"),
                               (["--fit-probes", "0"], "--fit-probes 0")):
         bad = run("scan_coverage", *bad_args)
