@@ -22,8 +22,8 @@ towards the object's centre, by a fixed lean (a number, in request units as `mod
 lean that takes it under the centre (`exact`). Not a policy: a bound on what a policy that picks the side (and
 the lean) of each probe from what it touched could reach with the same scan. `--fit-target side` (with
 `--fit-probes K`) asks instead how well a scan's first K probes tell that side, on the episodes whose object lies
-at least 5 cm off the line: fitted, and by the rule a side-picking scan follows (the side the first leaning probe
-that touched leans to; no fit, so no split's base rates in it).
+at least 5 cm off the line: fitted, and by the side-picking scan's rule without a fit (the side the first leaning
+probe that touched leans to), so no split's base rates enter it.
 
     .venv/bin/python scripts/scan_coverage.py                        # 512 val episodes, ideal mode
     .venv/bin/python scripts/scan_coverage.py --mode arm --split test
@@ -205,9 +205,10 @@ def coverage(touches: np.ndarray, directions: np.ndarray, offsets: np.ndarray) -
 
 def first_touch_side(touches: np.ndarray, directions: np.ndarray, offsets: np.ndarray, probes: int | None = None
                      ) -> dict:
-    """The rule a side-picking scan follows, scored without a fit: the object lies on the side the first leaning
-    probe (of the first `probes`) that touched leans to. Over the episodes whose object lies at least 5 cm off
-    the line: the share with such a touch, and how often its side is the object's (None if none has one)."""
+    """The side-picking scan's rule, scored without a fit: the object lies on the side the first leaning probe (of
+    the first `probes`) that touched leans to (the scan itself, when both of its first two probes touch, takes the
+    higher touch's side instead). Over the episodes whose object lies at least 5 cm off the line: the share with
+    such a touch, and how often its side is the object's (None if none has one)."""
     far = np.abs(offsets) >= SIDE_MIN_OFFSET
     lean = np.sign(directions[:, :probes, 0]) * (np.abs(directions[:, :probes, 0]) > np.sin(np.radians(1.0)))
     hit = (touches[:, :probes] > 0.5) & (lean != 0)
