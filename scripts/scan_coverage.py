@@ -64,6 +64,7 @@ from hg.sim import PoseRegions, ProbeSimulator, sample_episodes  # noqa: E402
 
 TOUCH_BINS = ((0, 1), (2, 3), (4, 5), (6, 10**6))  # touches per episode, inclusive
 OFFSET_BINS = ((0.0, 0.05), (0.05, 0.10), (0.10, 10.0))  # |object X - probe line X| in metres, [low, high)
+MIN_LEAN_DEG = 1.0  # a probe tilted more than this from straight down leans
 SIDE_MIN_OFFSET = 0.05  # --fit-target side is scored where the object lies at least this far off the line (m)
 
 
@@ -189,12 +190,17 @@ def accuracy_by_touches(touches: np.ndarray, correct: np.ndarray, offsets: np.nd
                              split((offsets >= lo) & (offsets < hi)) for lo, hi in OFFSET_BINS}}
 
 
+def tilt_deg(directions: np.ndarray) -> np.ndarray:
+    """(..., 3) unit probe directions -> (...) their tilt from straight down, in degrees."""
+    return np.degrees(np.arccos(np.clip(-directions[..., 2], -1, 1)))
+
+
 def coverage(touches: np.ndarray, directions: np.ndarray, offsets: np.ndarray) -> dict[str, float | None]:
     """Touches, tilt, and the share of the probes tilted by more than a degree that lean towards the side of the
     line the object lies on (offsets: object X - probe line X per episode; None when no probe leans)."""
     half = touches.shape[1] // 2
-    tilt = np.degrees(np.arccos(np.clip(-directions[..., 2], -1, 1)))
-    leaning = tilt > 1.0
+    tilt = tilt_deg(directions)
+    leaning = tilt > MIN_LEAN_DEG
     towards = np.sign(directions[..., 0]) == np.sign(offsets)[:, None]
     return {"touches": round(float(touches.sum(1).mean()), 3),
             "touches_first_half": round(float(touches[:, :half].sum(1).mean()), 3),
@@ -210,7 +216,7 @@ def first_touch_side(touches: np.ndarray, directions: np.ndarray, offsets: np.nd
     higher touch's side instead). Over the episodes whose object lies at least 5 cm off the line: the share with
     such a touch, and how often its side is the object's (None if none has one)."""
     far = np.abs(offsets) >= SIDE_MIN_OFFSET
-    lean = np.sign(directions[:, :probes, 0]) * (np.abs(directions[:, :probes, 0]) > np.sin(np.radians(1.0)))
+    lean = np.sign(directions[:, :probes, 0]) * (tilt_deg(directions[:, :probes]) > MIN_LEAN_DEG)
     hit = (touches[:, :probes] > 0.5) & (lean != 0)
     told = hit.any(1) & far
     side = lean[np.arange(len(lean)), hit.argmax(1)]
