@@ -460,8 +460,15 @@ def test_side_scan_leans_both_ways_first_then_to_the_side_its_touches_show(data)
     rollout = model.rollout(batch["labels"], batch["poses"], 0)
     model.sim.close()
     assert (rollout.requests[:, :2, 1] == torch.tensor([1.0, -1.0])).all() and (rollout.requests[..., 1] != 0).all()
+    steep = HapticGlance(n_probes=6, policy="line_scan", scan_span=0.5, scan_order="centre_out", scan_side=0.6,
+                         scan_side_first=1.0)  # a steeper first pair, the same places and sides
+    steep_requests = steep.scan_requests(points)
+    assert (steep_requests[:, :2, 3] == 0.0).all() and (steep_requests[:, 2:, 3] == 0.4).all()
+    torch.testing.assert_close(steep_requests[..., :3], requests[..., :3])
     with pytest.raises(ValueError, match="model.scan_side=3"):
         HapticGlance(scan_side=3.0)
+    with pytest.raises(ValueError, match="model.scan_side_first=1.0: .* needs model.scan_side > 0"):
+        HapticGlance(scan_side_first=1.0)
     with pytest.raises(ValueError, match="n_probes >= 2"):
         HapticGlance(scan_side=0.6, n_probes=1)
     with pytest.raises(ValueError, match="choose one way"):

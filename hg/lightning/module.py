@@ -112,7 +112,7 @@ class HapticGlance(pl.LightningModule):
                  prior_anchor: float = 0.0, mean_action_share: float = 0.0, scan_span: float = 1.0,
                  scan_order: Literal["sweep", "centre_out"] = "sweep", scan_lean: float = 0.0, scan_follow: float = 0.0,
                  scan_cross: float = 0.0, scan_reach: float = 0.0, scan_side: float = 0.0,
-                 point_frame: Literal["episode", "first_touch"] = "episode", touch_set: bool = False,
+                 scan_side_first: float = 0.0, point_frame: Literal["episode", "first_touch"] = "episode", touch_set: bool = False,
                  touch_set_net: Literal["small", "wide"] = "small", policy_warmup_steps: int = 0,
                  std_final_scale: float = 1.0, lr_final_scale: float = 1.0) -> None:
         super().__init__()
@@ -163,9 +163,13 @@ class HapticGlance(pl.LightningModule):
         for name, value, probes in (("scan_lean", scan_lean, "leaning probes"),
                                     ("scan_cross", scan_cross, "cross-check probes"),
                                     ("scan_reach", scan_reach, "reaching probes"),
-                                    ("scan_side", scan_side, "side-picking scan's probes")):
+                                    ("scan_side", scan_side, "side-picking scan's probes"),
+                                    ("scan_side_first", scan_side_first, "side-picking scan's first two probes")):
             if not 0.0 <= value <= 2.0:
                 raise ValueError(f"model.{name}={value}: must be in [0, 2] (1 - uz of the {probes}; 0: none)")
+        if scan_side_first and not scan_side:
+            raise ValueError(f"model.scan_side_first={scan_side_first}: sets the lean of the side-picking scan's first "
+                             "two probes, so it needs model.scan_side > 0")
         if scan_side and n_probes < 2:
             raise ValueError(f"model.scan_side={scan_side}: the side-picking scan needs model.n_probes >= 2, got "
                              f"{n_probes}")
@@ -313,8 +317,11 @@ class HapticGlance(pl.LightningModule):
         the later ones take the scan's places from its second on (its last is dropped). While nothing is touched
         the probes alternate +x and -x; after the first touch (index `first`, N if none) they all lean to its
         side, or, when both of the first two probes touched, to the side of the higher touch: a probe leaning
-        towards the object meets its surface before one leaning away."""
+        towards the object meets its surface before one leaning away. With `scan_side_first` the first two lean by
+        that instead: a steeper pair names the side more often right when it touches (scan_coverage.py
+        --fit-target side), a shallower lean after it gives up less of the profile along the line."""
         n, lean = scan.shape[1], self.hparams.scan_side
+        first_lean = self.hparams.scan_side_first or lean
         k = torch.arange(n, device=scan.device)
         alternate = torch.where(k % 2 == 0, 1.0, -1.0)
         touched, z = points[..., 3] > 0.5, points[..., 2]
@@ -323,7 +330,8 @@ class HapticGlance(pl.LightningModule):
         decided = (first[:, None] < k) & (k >= 2)  # request k reads probes 1..k only: both first ones from k = 2
         ux = torch.where(decided, found[:, None], alternate)
         py = scan[:, (k - 1).clamp(min=0), 0]
-        return torch.stack([py, ux, torch.zeros_like(ux), torch.full_like(ux, 1.0 - lean)], -1)
+        uz = torch.where(k < 2, 1.0 - first_lean, 1.0 - lean).expand_as(ux)
+        return torch.stack([py, ux, torch.zeros_like(ux), uz], -1)
 
     def line_scan_requests(self) -> Tensor:
         """(N, 4): probes evenly spaced over the middle `scan_span` of the probe line, swept from one end (the
