@@ -71,6 +71,9 @@ ROWS = {
                                     learned=False),
     "centre_scan_touchset_wide": Row("configs/centre_scan_touchset_wide.yaml",
                                      "centre-out scan + PCRN-FC + wide touch set (beyond the paper)", learned=False),
+    "side_scan_touchset_wide": Row("configs/side_scan_touchset_wide.yaml",
+                                   "side-picking scan (steep first pair) + PCRN-FC + wide touch set (beyond the "
+                                   "paper)", learned=False),
     "centre_scan_touchset_wide_long": Row("configs/centre_scan_touchset_wide_long.yaml",
                                           "centre-out scan + PCRN-FC + wide touch set, 16000 steps (beyond the "
                                           "paper)", learned=False),

@@ -461,10 +461,11 @@ def test_side_scan_leans_both_ways_first_then_to_the_side_its_touches_show(data)
     model.sim.close()
     assert (rollout.requests[:, :2, 1] == torch.tensor([1.0, -1.0])).all() and (rollout.requests[..., 1] != 0).all()
     steep = HapticGlance(n_probes=6, policy="line_scan", scan_span=0.5, scan_order="centre_out", scan_side=0.6,
-                         scan_side_first=1.0)  # a steeper first pair, the same places and sides
+                         scan_side_first=1.0)  # a steeper first pair that alone picks the side, the same places
     steep_requests = steep.scan_requests(points)
-    assert (steep_requests[:, :2, 3] == 0.0).all() and (steep_requests[:, 2:, 3] == 0.4).all()
-    torch.testing.assert_close(steep_requests[..., :3], requests[..., :3])
+    torch.testing.assert_close(steep_requests[:2, :, :3], requests[:2, :, :3])  # the pair touched: as before
+    assert (steep_requests[:, :2, 3] == 0.0).all() and (steep_requests[:2, 2:, 3] == 0.4).all()
+    assert (steep_requests[2:, 2:, 1] == 0).all() and (steep_requests[2:, 2:, 3] == 1.0).all()  # else straight
     with pytest.raises(ValueError, match="model.scan_side=3"):
         HapticGlance(scan_side=3.0)
     with pytest.raises(ValueError, match="model.scan_side_first=1.0: .* needs model.scan_side > 0"):

@@ -318,8 +318,9 @@ class HapticGlance(pl.LightningModule):
         the probes alternate +x and -x; after the first touch (index `first`, N if none) they all lean to its
         side, or, when both of the first two probes touched, to the side of the higher touch: a probe leaning
         towards the object meets its surface before one leaning away. With `scan_side_first` the first two lean by
-        that instead: a steeper pair names the side more often right when it touches (scan_coverage.py
-        --fit-target side), a shallower lean after it gives up less of the profile along the line."""
+        that instead, and only they pick the side: a steeper pair names it more often right when it touches
+        (scan_coverage.py --fit-target side), and if neither touched the rest go straight down, because a probe
+        leaning the wrong way misses what a straight one grazes."""
         n, lean = scan.shape[1], self.hparams.scan_side
         first_lean = self.hparams.scan_side_first or lean
         k = torch.arange(n, device=scan.device)
@@ -329,8 +330,11 @@ class HapticGlance(pl.LightningModule):
         found = torch.where(both, torch.where(z[:, 0] >= z[:, 1], 1.0, -1.0), alternate[first.clamp(max=n - 1)])
         decided = (first[:, None] < k) & (k >= 2)  # request k reads probes 1..k only: both first ones from k = 2
         ux = torch.where(decided, found[:, None], alternate)
-        py = scan[:, (k - 1).clamp(min=0), 0]
         uz = torch.where(k < 2, 1.0 - first_lean, 1.0 - lean).expand_as(ux)
+        if self.hparams.scan_side_first:  # the pair alone picks the side; if it touched nothing, straight down
+            straight = (first[:, None] >= 2) & (k >= 2)
+            ux, uz = torch.where(straight, 0.0, ux), torch.where(straight, 1.0, uz)
+        py = scan[:, (k - 1).clamp(min=0), 0]
         return torch.stack([py, ux, torch.zeros_like(ux), uz], -1)
 
     def line_scan_requests(self) -> Tensor:
