@@ -19,7 +19,8 @@ learned or on the classifier keeping up with it, so it tells whether a target is
 
 With `--aims`, also the scan aimed by an oracle that reads the object's pose: every probe leans across the line
 towards the object's centre, by a fixed lean (a number, in request units as `model.scan_lean`) or by exactly the
-lean that takes it under the centre (`exact`). Not a policy: a bound on what a policy that picks the side (and
+lean that takes it under the centre (`exact`); or, for a side-picking scan (`side`), its own probes with the side
+from the pose. Not a policy: a bound on what a policy that picks the side (and
 the lean) of each probe from what it touched could reach with the same scan. `--fit-target side` (with
 `--fit-probes K`) asks instead how well a scan's first K probes tell that side, on the episodes whose object lies
 at least 5 cm off the line: fitted, and by the side-picking scan's rule without a fit (the side the first leaning
@@ -36,6 +37,7 @@ probe that touched leans to), so no split's base rates enter it.
     .venv/bin/python scripts/scan_coverage.py --ckpt runs/table1/pcrn_fc_plus-seed0/checkpoints/best-step7500.ckpt
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --fit 16384 --episodes 4096   # what the scan can say
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --aims 0 0.6 exact --fit 16384   # ... aimed by an oracle
+    .venv/bin/python scripts/scan_coverage.py --spans 0.5 --sides 0.6 --side-firsts 1 --aims 0 side   # ... its side
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --sides 0.6 --fit 16384 --fit-target side --fit-probes 4
 
 Last line: JSON {"<order>-span<span>[-lean<lean>][-follow<follow>][-cross<cross>][-reach<reach>][-side<side>]
@@ -93,7 +95,9 @@ def policy_probes(model: HapticGlance, sim: ProbeSimulator, labels: np.ndarray, 
 class OracleAimedScan(HapticGlance):
     """The fixed scan with every probe leaning across the line (x) towards the object's centre, read from the
     pose: by `aim` request units (the side from the oracle), or, with aim "exact", by the lean whose probe passes
-    under the line at the centre's (X, Z), so the probes profile the object through its middle wherever it lies."""
+    under the line at the centre's (X, Z), so the probes profile the object through its middle wherever it lies.
+    With aim "side" (a side-picking scan only, model.scan_side) the scan keeps its first pair and its leans, and only
+    the side the rest lean to comes from the pose: what the pair costs, apart from the sides it gets wrong."""
 
     def __init__(self, aim: str, **scan) -> None:
         super().__init__(**scan)
@@ -103,6 +107,9 @@ class OracleAimedScan(HapticGlance):
                 follow_scan: bool = False):
         scene = self.sim.scene
         off, depth = poses[:, 0].double() - scene.probe_x, -poses[:, 2].double()
+        self.side = torch.sign(off).float()
+        if self.aim == "side":
+            return super().rollout(labels, poses, seed, deterministic, follow_scan)
         if self.aim == "exact":  # tan(tilt) = tan(max_tilt) |ux| when uy = 0, uz = -1 (request_to_probe)
             ux, uz = (off / depth / np.tan(np.radians(scene.max_tilt_deg))).clamp(-1, 1).float(), -1.0
         else:  # as model.scan_lean: ux the lean, uz 0 (half the tilt range)
@@ -112,8 +119,18 @@ class OracleAimedScan(HapticGlance):
 
     def next_actions(self, *args, **kwargs) -> torch.Tensor:
         action = super().next_actions(*args, **kwargs).clone()
-        action[:, 1:] = self.direction
+        if self.aim != "side":
+            action[:, 1:] = self.direction
         return action
+
+    def side_picking(self, scan: torch.Tensor, points: torch.Tensor, first: torch.Tensor) -> torch.Tensor:
+        requests = super().side_picking(scan, points, first)
+        if self.aim == "side":  # the pair as it is, then every probe leaning by the scan's lean to the true side
+            n = requests.shape[1]
+            later = torch.arange(n) >= 2
+            requests[:, later, 1] = self.side[:, None].expand(-1, n)[:, later]
+            requests[:, later, 3] = 1.0 - self.hparams.scan_side
+        return requests
 
 
 def touch_frame(points: torch.Tensor, scale: float = 5.0, centred: bool = True) -> torch.Tensor:
@@ -259,7 +276,9 @@ def main() -> None:
                         help="model.scan_side_first values: the side-picking scan's first two probes' lean (0: as "
                              "the rest)")
     parser.add_argument("--aims", nargs="+", default=["0"],
-                        help="oracle leans towards the object's centre: request units, or 'exact' (0: no oracle)")
+                        help="oracle leans towards the object's centre: request units, or 'exact'; or 'side': a "
+                             "side-picking scan (--sides) whose later probes lean to the side read from the pose "
+                             "(0: no oracle)")
     parser.add_argument("--ckpt", type=Path, nargs="*", default=[], help="checkpoints whose policies to measure too")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--fit", type=int, default=0, metavar="EPISODES",
@@ -278,8 +297,8 @@ def main() -> None:
     if args.fit_probes is not None and not 1 <= args.fit_probes <= args.n_probes:
         parser.error(f"--fit-probes {args.fit_probes}: must be in [1, --n-probes {args.n_probes}]")
     for aim in args.aims:
-        if aim != "exact" and not _is_number(aim):
-            parser.error(f"--aims: {aim!r} is neither a number nor 'exact'")
+        if aim not in ("exact", "side") and not _is_number(aim):
+            parser.error(f"--aims: {aim!r} is neither a number nor 'exact' or 'side'")
     torch.set_num_threads(1)
 
     scans = {f"{order}-span{span:g}" + (f"-lean{lean:g}" if lean else "") + (f"-follow{follow:g}" if follow else "")
@@ -293,7 +312,7 @@ def main() -> None:
              for cross in args.crosses for reach in args.reaches for side in args.sides
              for first in args.side_firsts for aim in args.aims
              if scan_options_combine(lean, follow, cross, reach, side) and (side or not first)
-             and (aim == "0" or not (lean or cross or reach or side))}
+             and (aim == "0" or (bool(side) == (aim == "side") and not (lean or cross or reach)))}
     models = dict(scans)
     for path in args.ckpt:
         if not path.is_file():
