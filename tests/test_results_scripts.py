@@ -182,6 +182,8 @@ def test_oracle_aimed_scan_passes_under_the_object_centre_or_leans_towards_it():
     models = {aim: coverage.scan_model(aim, **scan) for aim in ("0", "0.6", "exact")}
     probes = {aim: coverage.policy_probes(model, sim, labels, poses) for aim, model in models.items()}
     plain, fixed, exact = (probes[aim][1] for aim in ("0", "0.6", "exact"))
+    pair_then_told = coverage.policy_probes(coverage.scan_model("side", scan_side=0.6, scan_side_first=1.0, **scan),
+                                            sim, labels, poses)[1]  # the side-picking scan told the side
     told = {aim: coverage.fit_accuracy(models[aim], sim, PoseRegions(sim.scene), 256, probes[aim][0],
                                        coverage.fit_labels("side", labels, poses, sim.scene), 40, 0,
                                        target="side", probes=2) for aim in ("0", "0.6")}
@@ -195,6 +197,7 @@ def test_oracle_aimed_scan_passes_under_the_object_centre_or_leans_towards_it():
     # a fixed lean: the same tilt for every probe, to the side the object lies on
     side = np.sign(poses[:, 0] - sim.scene.probe_x)[:, None]
     assert (np.sign(fixed[..., 0]) == side).all() and np.allclose(np.abs(fixed[..., 0]), abs(fixed[0, 0, 0]))
+    assert (np.sign(pair_then_told[:, :2, 0]) == [1, -1]).all() and (np.sign(pair_then_told[:, 2:, 0]) == side).all()
     bad = run("scan_coverage", "--aims", "left")
     assert bad.returncode != 0 and "--aims: 'left'" in bad.stderr
     offsets = poses[:, 0] - sim.scene.probe_x
