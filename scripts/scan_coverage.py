@@ -41,10 +41,10 @@ probe that touched leans to), so no split's base rates enter it.
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --sides 0.6 --fit 16384 --fit-target side --fit-probes 4
 
 Last line: JSON {"<order>-span<span>[-lean<lean>][-follow<follow>][-cross<cross>][-reach<reach>][-side<side>]
-[-first<first>][-aim<aim>]" or "<checkpoint>": {"touches": .., "touches_first_half": .., "any_touch": .., "tilt_deg": ..,
-"towards_object": ..[, "fit_accuracy" or "fit_side_accuracy": ..][, "first_touch_side": {"share": .., "accuracy":
-..}][, "accuracy": .., "by_touches": {"0-1": {"share": .., "accuracy": ..}, ...}, "by_offset_cm": {"0-5": {...},
-"5-10": .., "10+": ..}][, "prior_shift_rms": {"py": .., "ux": .., "uy": .., "uz": ..}]}, ...}.
+[-first<first>][-aim<aim>]" or "<checkpoint>": {"touches": .., "touches_first_half": .., "any_touch": ..,
+"tilt_deg": .., "towards_object": ..[, "fit_accuracy" or "fit_side_accuracy": ..][, "first_touch_side": {"share": ..,
+"accuracy": ..}][, "accuracy": .., "by_touches": {"0-1": {"share": .., "accuracy": ..}, ...}, "by_offset_cm":
+{"0-5": {...}, "5-10": .., "10+": ..}][, "prior_shift_rms": {"py": .., "ux": .., "uy": .., "uz": ..}]}, ...}.
 """
 from __future__ import annotations
 
@@ -95,9 +95,7 @@ def policy_probes(model: HapticGlance, sim: ProbeSimulator, labels: np.ndarray, 
 class OracleAimedScan(HapticGlance):
     """The fixed scan with every probe leaning across the line (x) towards the object's centre, read from the
     pose: by `aim` request units (the side from the oracle), or, with aim "exact", by the lean whose probe passes
-    under the line at the centre's (X, Z), so the probes profile the object through its middle wherever it lies.
-    With aim "side" (a side-picking scan only, model.scan_side) the scan keeps its first pair and its leans, and only
-    the side the rest lean to comes from the pose: what the pair costs, apart from the sides it gets wrong."""
+    under the line at the centre's (X, Z), so the probes profile the object through its middle wherever it lies."""
 
     def __init__(self, aim: str, **scan) -> None:
         super().__init__(**scan)
@@ -107,9 +105,6 @@ class OracleAimedScan(HapticGlance):
                 follow_scan: bool = False):
         scene = self.sim.scene
         off, depth = poses[:, 0].double() - scene.probe_x, -poses[:, 2].double()
-        self.side = torch.sign(off).float()
-        if self.aim == "side":
-            return super().rollout(labels, poses, seed, deterministic, follow_scan)
         if self.aim == "exact":  # tan(tilt) = tan(max_tilt) |ux| when uy = 0, uz = -1 (request_to_probe)
             ux, uz = (off / depth / np.tan(np.radians(scene.max_tilt_deg))).clamp(-1, 1).float(), -1.0
         else:  # as model.scan_lean: ux the lean, uz 0 (half the tilt range)
@@ -119,17 +114,23 @@ class OracleAimedScan(HapticGlance):
 
     def next_actions(self, *args, **kwargs) -> torch.Tensor:
         action = super().next_actions(*args, **kwargs).clone()
-        if self.aim != "side":
-            action[:, 1:] = self.direction
+        action[:, 1:] = self.direction
         return action
+
+
+class OracleSidedScan(HapticGlance):
+    """A side-picking scan (model.scan_side) that keeps its first pair and its leans, but whose later probes all lean
+    to the side read from the pose: what the pair costs, apart from the sides it gets wrong."""
+
+    def rollout(self, labels: torch.Tensor, poses: torch.Tensor, seed: int, deterministic: bool = False,
+                follow_scan: bool = False):
+        self.side = torch.sign(poses[:, 0].double() - self.sim.scene.probe_x).float()
+        return super().rollout(labels, poses, seed, deterministic, follow_scan)
 
     def side_picking(self, scan: torch.Tensor, points: torch.Tensor, first: torch.Tensor) -> torch.Tensor:
         requests = super().side_picking(scan, points, first)
-        if self.aim == "side":  # the pair as it is, then every probe leaning by the scan's lean to the true side
-            n = requests.shape[1]
-            later = torch.arange(n) >= 2
-            requests[:, later, 1] = self.side[:, None].expand(-1, n)[:, later]
-            requests[:, later, 3] = 1.0 - self.hparams.scan_side
+        requests[:, 2:, 1] = self.side[:, None]
+        requests[:, 2:, 3] = 1.0 - self.hparams.scan_side
         return requests
 
 
@@ -250,7 +251,9 @@ def _is_number(text: str) -> bool:
 
 
 def scan_model(aim: str, **scan) -> HapticGlance:
-    """The fixed scan of these options, aimed by the oracle unless aim is "0"."""
+    """The fixed scan of these options, aimed by the oracle unless aim is "0" (told only its side if "side")."""
+    if aim == "side":
+        return OracleSidedScan(**scan)
     return HapticGlance(**scan) if aim == "0" else OracleAimedScan(aim, **scan)
 
 

@@ -112,9 +112,9 @@ class HapticGlance(pl.LightningModule):
                  prior_anchor: float = 0.0, mean_action_share: float = 0.0, scan_span: float = 1.0,
                  scan_order: Literal["sweep", "centre_out"] = "sweep", scan_lean: float = 0.0, scan_follow: float = 0.0,
                  scan_cross: float = 0.0, scan_reach: float = 0.0, scan_side: float = 0.0,
-                 scan_side_first: float = 0.0, point_frame: Literal["episode", "first_touch"] = "episode", touch_set: bool = False,
-                 touch_set_net: Literal["small", "wide"] = "small", policy_warmup_steps: int = 0,
-                 std_final_scale: float = 1.0, lr_final_scale: float = 1.0) -> None:
+                 scan_side_first: float = 0.0, point_frame: Literal["episode", "first_touch"] = "episode",
+                 touch_set: bool = False, touch_set_net: Literal["small", "wide"] = "small",
+                 policy_warmup_steps: int = 0, std_final_scale: float = 1.0, lr_final_scale: float = 1.0) -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
