@@ -59,7 +59,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from hg.lightning.module import COMPONENTS, HapticGlance, scan_options_combine  # noqa: E402
+from hg.lightning.module import COMPONENTS, SCAN_ORDERS, HapticGlance, scan_options_combine  # noqa: E402
 from hg.nets.pointcloud import PointNet, TouchSetClassifier  # noqa: E402
 from hg.provenance import repo_path  # noqa: E402
 from hg.sim import PoseRegions, ProbeSimulator, sample_episodes  # noqa: E402
@@ -263,7 +263,7 @@ def main() -> None:
     parser.add_argument("--n-probes", type=int, default=10)
     parser.add_argument("--mode", choices=["ideal", "arm"], default="ideal")
     parser.add_argument("--split", choices=["train", "val", "test"], default="val")
-    parser.add_argument("--orders", nargs="+", choices=["sweep", "centre_out"], default=["sweep", "centre_out"])
+    parser.add_argument("--orders", nargs="+", choices=SCAN_ORDERS, default=["sweep", "centre_out"])
     parser.add_argument("--spans", type=float, nargs="+", default=[1.0, 0.75, 0.5])
     parser.add_argument("--leans", type=float, nargs="+", default=[0.0],
                         help="model.scan_lean values (0: straight down)")

@@ -266,6 +266,18 @@ def test_centre_out_scan_covers_the_middle_nearest_first():
         HapticGlance(scan_order="middle")
 
 
+def test_coarse_first_scan_spans_the_scan_in_its_first_half_then_fills_in():
+    centre = HapticGlance(n_probes=10, policy="line_scan", scan_span=0.5, scan_order="centre_out")
+    coarse = HapticGlance(n_probes=10, policy="line_scan", scan_span=0.5, scan_order="coarse_first")
+    py_centre, py_coarse = centre.line_scan_requests()[:, 0], coarse.line_scan_requests()[:, 0]
+    step = 1 / 9  # the grid over [-0.5, 0.5]
+    torch.testing.assert_close(py_coarse[:5], torch.tensor([-0.5, 1.5, -2.5, 3.5, -4.5]) * step)
+    torch.testing.assert_close(py_coarse.sort().values, py_centre.sort().values)  # the same probes after 10
+    first = py_coarse[:5].sort().values
+    assert first.diff().min() > 1.9 * step  # every second point of the grid
+    assert first[-1] - first[0] > 1.8 * (py_centre[:5].max() - py_centre[:5].min())  # spans twice as far
+    assert (py_coarse[5:].abs().diff() >= 0).all()  # the points between, nearest the centre first
+
 def test_follow_scan_probes_around_the_touches_and_touches_more(data):
     model = make_model(data, policy="line_scan", scan_span=0.5, scan_order="centre_out", scan_follow=0.1)
     lo, hi = model.sim.scene.probe_y

@@ -16,6 +16,7 @@ from hg.sim import ProbeSimulator
 from hg.sim.robot import achieved
 
 COMPONENTS = ("py", "ux", "uy", "uz")
+SCAN_ORDERS = ("sweep", "centre_out", "coarse_first")  # model.scan_order: where a fixed scan puts probe k
 
 
 def discounted_returns(rewards: Tensor, gamma: float) -> Tensor:
@@ -110,7 +111,7 @@ class HapticGlance(pl.LightningModule):
                  reward: Literal["correct", "log_gain"] = "correct", policy_lr_scale: float = 1.0,
                  prior: Literal["none", "line_scan"] = "none", prior_lean: float = 0.0, prior_exact: bool = False,
                  prior_anchor: float = 0.0, mean_action_share: float = 0.0, scan_span: float = 1.0,
-                 scan_order: Literal["sweep", "centre_out"] = "sweep", scan_lean: float = 0.0, scan_follow: float = 0.0,
+                 scan_order: Literal["sweep", "centre_out", "coarse_first"] = "sweep", scan_lean: float = 0.0, scan_follow: float = 0.0,
                  scan_cross: float = 0.0, scan_reach: float = 0.0, scan_side: float = 0.0,
                  scan_side_first: float = 0.0, point_frame: Literal["episode", "first_touch"] = "episode",
                  touch_set: bool = False, touch_set_net: Literal["small", "wide"] = "small",
@@ -177,8 +178,8 @@ class HapticGlance(pl.LightningModule):
             raise ValueError(f"model.scan_lean={scan_lean}, model.scan_follow={scan_follow}, model.scan_cross="
                              f"{scan_cross}, model.scan_reach={scan_reach}, model.scan_side={scan_side}: choose one "
                              "way for the scan to adapt (only scan_follow and scan_lean combine)")
-        if scan_order not in ("sweep", "centre_out"):
-            raise ValueError(f"model.scan_order={scan_order!r}: expected 'sweep' or 'centre_out'")
+        if scan_order not in SCAN_ORDERS:
+            raise ValueError(f"model.scan_order={scan_order!r}: expected one of {SCAN_ORDERS}")
         if prior not in ("none", "line_scan"):
             raise ValueError(f"model.prior={prior!r}: expected 'none' or 'line_scan'")
         if not 0.0 <= prior_lean <= 1.5:
@@ -340,12 +341,19 @@ class HapticGlance(pl.LightningModule):
     def line_scan_requests(self) -> Tensor:
         """(N, 4): probes evenly spaced over the middle `scan_span` of the probe line, swept from one end (the
         paper's kind of scan) or `centre_out` (nearest the centre first, alternating sides), which meets objects
-        centred near the line's middle in the first probes instead of half-way through. Straight down, or with
-        `scan_lean` fanned across the line (tan(tilt) = tan(max tilt) * scan_lean / 2: 11 degrees for 0.4)."""
+        centred near the line's middle in the first probes instead of half-way through; or `coarse_first`: every
+        second point of the same grid centre-out, then the points between, so that the first half of the probes
+        already spans the whole scan (where the object ends) and the second half fills in its profile. Straight
+        down, or with `scan_lean` fanned across the line (tan(tilt) = tan(max tilt) * scan_lean / 2: 11 degrees
+        for 0.4)."""
         n, span, lean = self.hparams.n_probes, self.hparams.scan_span, self.hparams.scan_lean
         py = torch.linspace(-span, span, n) if n > 1 else torch.zeros(1)
-        if self.hparams.scan_order == "centre_out":
-            py = py[torch.argsort(py.abs(), stable=True)]
+        if self.hparams.scan_order != "sweep":
+            rank = py.abs()
+            if self.hparams.scan_order == "coarse_first":  # the pass holding the point nearest the centre goes first
+                index = torch.arange(n)
+                rank = rank + 2 * span * ((index - int(rank.argmin())) % 2)
+            py = py[torch.argsort(rank, stable=True)]
         # scan_lean > 0 fans the scan across the line: of every three probes one goes straight down, one leans
         # towards +x and one towards -x, reaching objects lying off the line (ux = +-1, uz = 1 - scan_lean)
         ux = torch.tensor([0.0, 1.0, -1.0]).repeat(n)[:n] if lean > 0 else torch.zeros(n)
