@@ -83,6 +83,9 @@ ROWS = {
     "centre_scan_touchset_wide_long_lr_decay": Row("configs/centre_scan_touchset_wide_long_lr_decay.yaml",
                                                    "centre-out scan + PCRN-FC + wide touch set, 16000 steps, learning "
                                                    "rate falling to 5% (beyond the paper)", learned=False),
+    "coarse_scan_touchset_wide_lr_decay": Row("configs/coarse_scan_touchset_wide_lr_decay.yaml",
+                                              "coarse-first scan + PCRN-FC + wide touch set, learning rate falling "
+                                              "to 5% (beyond the paper)", learned=False),
     "centre_scan_touchset_wide_ema": Row("configs/centre_scan_touchset_wide_ema.yaml",
                                          "centre-out scan + PCRN-FC + wide touch set, moving average of the weights "
                                          "(beyond the paper)", learned=False),
@@ -129,6 +132,11 @@ ROWS = {
     "pcrn_fc_centre_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay": Row(
         "configs/pcrn_fc_centre_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay.yaml",
         "PCRN-FC+ from the centre-out scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
+        "from step 8000, policy starting exactly on the scan and held near it, learning rate falling to 5% (beyond "
+        "the paper)"),
+    "pcrn_fc_coarse_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay": Row(
+        "configs/pcrn_fc_coarse_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay.yaml",
+        "PCRN-FC+ from the coarse-first scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
         "from step 8000, policy starting exactly on the scan and held near it, learning rate falling to 5% (beyond "
         "the paper)"),
     "pcrn_fc_centre_touchset_warmup_wide_std_decay_exact_anchor_ema": Row(
