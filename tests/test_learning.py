@@ -278,6 +278,7 @@ def test_coarse_first_scan_spans_the_scan_in_its_first_half_then_fills_in():
     assert first[-1] - first[0] > 1.8 * (py_centre[:5].max() - py_centre[:5].min())  # spans twice as far
     assert (py_coarse[5:].abs().diff() >= 0).all()  # the points between, nearest the centre first
 
+
 def test_follow_scan_probes_around_the_touches_and_touches_more(data):
     model = make_model(data, policy="line_scan", scan_span=0.5, scan_order="centre_out", scan_follow=0.1)
     lo, hi = model.sim.scene.probe_y

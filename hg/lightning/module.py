@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, get_args
 
 import pytorch_lightning as pl
 import torch
@@ -16,7 +16,8 @@ from hg.sim import ProbeSimulator
 from hg.sim.robot import achieved
 
 COMPONENTS = ("py", "ux", "uy", "uz")
-SCAN_ORDERS = ("sweep", "centre_out", "coarse_first")  # model.scan_order: where a fixed scan puts probe k
+ScanOrder = Literal["sweep", "centre_out", "coarse_first"]  # model.scan_order: where a fixed scan puts probe k
+SCAN_ORDERS = get_args(ScanOrder)
 
 
 def discounted_returns(rewards: Tensor, gamma: float) -> Tensor:
@@ -111,7 +112,7 @@ class HapticGlance(pl.LightningModule):
                  reward: Literal["correct", "log_gain"] = "correct", policy_lr_scale: float = 1.0,
                  prior: Literal["none", "line_scan"] = "none", prior_lean: float = 0.0, prior_exact: bool = False,
                  prior_anchor: float = 0.0, mean_action_share: float = 0.0, scan_span: float = 1.0,
-                 scan_order: Literal["sweep", "centre_out", "coarse_first"] = "sweep", scan_lean: float = 0.0, scan_follow: float = 0.0,
+                 scan_order: ScanOrder = "sweep", scan_lean: float = 0.0, scan_follow: float = 0.0,
                  scan_cross: float = 0.0, scan_reach: float = 0.0, scan_side: float = 0.0,
                  scan_side_first: float = 0.0, point_frame: Literal["episode", "first_touch"] = "episode",
                  touch_set: bool = False, touch_set_net: Literal["small", "wide"] = "small",
