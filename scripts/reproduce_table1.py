@@ -86,6 +86,12 @@ ROWS = {
     "coarse_scan_touchset_wide_lr_decay": Row("configs/coarse_scan_touchset_wide_lr_decay.yaml",
                                               "coarse-first scan + PCRN-FC + wide touch set, learning rate falling "
                                               "to 5% (beyond the paper)", learned=False),
+    "coarse_scan_touchset_wide_prefix_lr_decay": Row("configs/coarse_scan_touchset_wide_prefix_lr_decay.yaml",
+                                                     "coarse-first scan + PCRN-FC + wide touch set told the prefix, "
+                                                     "learning rate falling to 5% (beyond the paper)", learned=False),
+    "centre_scan_touchset_wide_prefix_lr_decay": Row("configs/centre_scan_touchset_wide_prefix_lr_decay.yaml",
+                                                     "centre-out scan + PCRN-FC + wide touch set told the prefix, "
+                                                     "learning rate falling to 5% (beyond the paper)", learned=False),
     "centre_scan_touchset_wide_ema": Row("configs/centre_scan_touchset_wide_ema.yaml",
                                          "centre-out scan + PCRN-FC + wide touch set, moving average of the weights "
                                          "(beyond the paper)", learned=False),

@@ -197,6 +197,20 @@ def test_wide_touch_set_reads_where_probes_missed() -> None:
     assert differs.tolist() == [k >= 2 for k in range(6)]
 
 
+def test_touch_set_with_prefixes_tells_a_sparse_prefix_from_a_full_one() -> None:
+    """The same touched points and share of touches, read after 2 probes and after 4: alike without the prefix
+    input, told apart with it."""
+    short = touched_points([True, False])
+    full = touched_points([True, True, False, False])
+    full[:, 1, :3] = full[:, 0, :3] = short[:, 0, :3]  # the same point touched twice: the same set, share 1/2
+    for n_prefixes, alike in ((0, True), (4, False)):
+        torch.manual_seed(0)
+        clf = TouchSetClassifier(4, shared=(8, 16, 32), hidden=16, n_prefixes=n_prefixes)
+        assert torch.allclose(clf(short)[:, 1], clf(full)[:, 3], atol=1e-6) == alike
+    with pytest.raises(ValueError, match="n_prefixes=4"):
+        clf(touched_points([True] * 5))
+
+
 @pytest.mark.parametrize("make", [lambda: PointNet(4), lambda: DGCNN(4, k=9)], ids=["PointNet", "DGCNN"])
 def test_pointcloud_shapes(make) -> None:
     net = make()

@@ -116,6 +116,7 @@ class HapticGlance(pl.LightningModule):
                  scan_cross: float = 0.0, scan_reach: float = 0.0, scan_side: float = 0.0,
                  scan_side_first: float = 0.0, point_frame: Literal["episode", "first_touch"] = "episode",
                  touch_set: bool = False, touch_set_net: Literal["small", "wide"] = "small",
+                 touch_set_prefix: bool = False,
                  policy_warmup_steps: int = 0, std_final_scale: float = 1.0, lr_final_scale: float = 1.0) -> None:
         super().__init__()
         if n_probes < 1:
@@ -147,8 +148,10 @@ class HapticGlance(pl.LightningModule):
             raise ValueError(f"model.policy={policy!r}: expected 'learned', 'random' or 'line_scan'")
         self.classifier = classifiers[classifier]()
         # beyond the paper: the logits of a translation-invariant classifier of the touched points are added
-        touch_nets = {"small": lambda: TouchSetClassifier(n_classes, hidden=hidden),
-                      "wide": lambda: TouchSetClassifier.wide(n_classes)}  # wide: reads misses too, LayerNorm
+        # touch_set_prefix: its head also reads which prefix it scores (one-hot)
+        n_prefixes = n_probes if touch_set_prefix else 0
+        touch_nets = {"small": lambda: TouchSetClassifier(n_classes, hidden=hidden, n_prefixes=n_prefixes),
+                      "wide": lambda: TouchSetClassifier.wide(n_classes, n_prefixes)}  # wide: reads misses, LayerNorm
         if touch_set_net not in touch_nets:
             raise ValueError(f"model.touch_set_net={touch_set_net!r}: expected one of {sorted(touch_nets)}")
         self.touch_set = touch_nets[touch_set_net]() if touch_set else None

@@ -90,19 +90,23 @@ class TouchSetClassifier(nn.Module):
     miss reports where its ray ended, so it says where the object is not, which tells where it ends. The wide
     variant (`wide()`) pools misses too, 512 features wide, with LayerNorm: on the same fixed-scan probes it
     learns more (`scan_coverage.py --fit-net`).
+
+    With `n_prefixes` > 0 the head also reads which prefix it scores (one-hot, k < n_prefixes): one set of weights
+    then need not read a scan's sparse first probes and its full set of probes alike.
     """
 
     def __init__(self, n_classes: int, shared: tuple[int, ...] = (64, 128, 256), hidden: int = 256,
-                 scale: float = 5.0, misses: bool = False, layer_norm: bool = False) -> None:
+                 scale: float = 5.0, misses: bool = False, layer_norm: bool = False, n_prefixes: int = 0) -> None:
         super().__init__()
         self.scale = scale  # relative coordinates of a ~0.2 m object (x point_scale) to about unit size
         self.misses = misses
+        self.n_prefixes = n_prefixes
         self.shared = mlp([4 if misses else 3, *shared], layer_norm=layer_norm)
-        self.head = mlp([shared[-1] + 1, hidden, n_classes], last_act=False, layer_norm=layer_norm)
+        self.head = mlp([shared[-1] + 1 + n_prefixes, hidden, n_classes], last_act=False, layer_norm=layer_norm)
 
     @classmethod
-    def wide(cls, n_classes: int) -> "TouchSetClassifier":
-        return cls(n_classes, shared=(64, 128, 512), misses=True, layer_norm=True)
+    def wide(cls, n_classes: int, n_prefixes: int = 0) -> "TouchSetClassifier":
+        return cls(n_classes, shared=(64, 128, 512), misses=True, layer_norm=True, n_prefixes=n_prefixes)
 
     def forward(self, points: Tensor) -> Tensor:
         """points (B, N, 4): X, Y, Z and the contact flag T -> logits (B, N, n_classes).
@@ -128,4 +132,10 @@ class TouchSetClassifier(nn.Module):
         if not self.misses:  # a prefix without a touch pools to zeros
             features = torch.where(count == 0, torch.zeros_like(features), features)
         share = count / torch.arange(1, n + 1, dtype=points.dtype, device=points.device)[:, None]
-        return self.head(torch.cat([features, share], -1))
+        inputs = [features, share]
+        if self.n_prefixes:
+            if n > self.n_prefixes:
+                raise ValueError(f"{n} probes per episode, but this touch-set classifier reads at most "
+                                 f"n_prefixes={self.n_prefixes}")
+            inputs.append(torch.eye(n, self.n_prefixes, dtype=points.dtype, device=points.device).expand(b, -1, -1))
+        return self.head(torch.cat(inputs, -1))
