@@ -140,6 +140,11 @@ ROWS = {
         "PCRN-FC+ from the centre-out scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
         "from step 8000, policy starting exactly on the scan and held near it, learning rate falling to 5% (beyond "
         "the paper)"),
+    "pcrn_fc_centre_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_reads_touchset": Row(
+        "configs/pcrn_fc_centre_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_reads_touchset.yaml",
+        "PCRN-FC+ from the centre-out scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
+        "from step 8000, policy starting exactly on the scan and held near it, learning rate falling to 5%, the policy "
+        "reading the touch set's pooled features (beyond the paper)"),
     "pcrn_fc_coarse_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay": Row(
         "configs/pcrn_fc_coarse_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay.yaml",
         "PCRN-FC+ from the coarse-first scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "

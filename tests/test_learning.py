@@ -65,8 +65,9 @@ def test_gradient_routing(data):
                                                         "baseline": True}
 
 
-def test_touch_set_adds_to_the_classifier_and_learns_from_cross_entropy_only(data):
-    model = make_model(data, touch_set=True)
+@pytest.mark.parametrize("policy_reads_touch_set", [False, True], ids=["classifier only", "policy reads it"])
+def test_touch_set_adds_to_the_classifier_and_learns_from_cross_entropy_only(data, policy_reads_touch_set):
+    model = make_model(data, touch_set=True, policy_reads_touch_set=policy_reads_touch_set)
     batch = first_batch(data)
     rollout = model.rollout(batch["labels"], batch["poses"], int(batch["seed"]))
     terms, logits = model.evaluate(rollout, batch["labels"])
@@ -77,6 +78,8 @@ def test_touch_set_adds_to_the_classifier_and_learns_from_cross_entropy_only(dat
         terms[loss].backward(retain_graph=True)
         assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.touch_set.parameters()) == learns
     assert make_model(data).touch_set is None  # off by default: the paper's rows are unchanged
+    with pytest.raises(ValueError, match="policy_reads_touch_set=true needs model.touch_set=true"):
+        make_model(data, policy_reads_touch_set=True)
 
 
 def test_policy_warmup_trains_the_classifier_on_the_scan_and_leaves_the_policy_alone(data):
@@ -205,14 +208,18 @@ def test_rollout_is_a_function_of_the_batch_seed(data):
     assert not torch.equal(first.actions, mean_action.actions)
 
 
-@pytest.mark.parametrize("encoder, point_frame", [("pcrn", "episode"), ("pcrn", "first_touch"), ("lstm", "episode")])
-def test_log_prob_is_taken_under_the_policy_that_acted(data, encoder, point_frame):
+@pytest.mark.parametrize("encoder, point_frame, reads_touch_set", [
+    ("pcrn", "episode", False), ("pcrn", "first_touch", False), ("lstm", "episode", False),
+    ("pcrn", "episode", True)])
+def test_log_prob_is_taken_under_the_policy_that_acted(data, encoder, point_frame, reads_touch_set):
     """The states rebuilt for the loss (whole sequences) must be those the rollout sampled from (one probe at a
     time): the mean-action rollout's requests are then exactly the means the loss pass computes."""
-    model = make_model(data, encoder=encoder, point_frame=point_frame)
+    model = make_model(data, encoder=encoder, point_frame=point_frame, touch_set=reads_touch_set,
+                       touch_set_net="wide", policy_reads_touch_set=reads_touch_set)
     batch = first_batch(data)
     rollout = model.rollout(batch["labels"], batch["poses"], 1, deterministic=True)
-    states = model.location.states(model.encoder(rollout.requests, model.encoder_points(rollout.points)))
+    extra = model.touch_set.pooled(rollout.points) if reads_touch_set else None
+    states = model.location.states(model.encoder(rollout.requests, model.encoder_points(rollout.points)), extra)
     mu, _ = model.location.distribution(states, rollout.actions)
     torch.testing.assert_close(rollout.actions, mu)
 

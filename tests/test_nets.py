@@ -119,14 +119,18 @@ def test_location_sample() -> None:
     assert torch.allclose(mu, mu2) and torch.allclose(sigma, sigma2)
 
 
-def test_location_states_match_state() -> None:
-    net = LocationNetwork(8, hidden=32)
+@pytest.mark.parametrize("extra_dim", [0, 3], ids=["summary only", "with extra features"])
+def test_location_states_match_state(extra_dim) -> None:
+    net = LocationNetwork(8 + extra_dim, hidden=32)
     with torch.no_grad():
         net.start.normal_()
     rep = torch.randn(B, N, 8)
-    states = net.states(rep)
+    extra = torch.randn(B, N, extra_dim) if extra_dim else None
+    states = net.states(rep, extra)
+    assert states.shape == (B, N, 8 + extra_dim)
     for i in range(N):
-        assert torch.allclose(states[:, i], net.state(rep[:, :i].sum(1), i), atol=1e-6)
+        step_extra = extra[:, i - 1] if extra_dim and i else None  # s_i reads the features of probes 1..i
+        assert torch.allclose(states[:, i], net.state(rep[:, :i].sum(1), i, extra=step_extra), atol=1e-6)
     assert torch.equal(net.state(None, 0, batch_size=B), net.start.expand(B, -1))
     with pytest.raises(ValueError, match="batch_size"):
         net.state(None, 0)

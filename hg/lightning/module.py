@@ -116,7 +116,7 @@ class HapticGlance(pl.LightningModule):
                  scan_cross: float = 0.0, scan_reach: float = 0.0, scan_side: float = 0.0,
                  scan_side_first: float = 0.0, point_frame: Literal["episode", "first_touch"] = "episode",
                  touch_set: bool = False, touch_set_net: Literal["small", "wide"] = "small",
-                 touch_set_prefix: bool = False,
+                 touch_set_prefix: bool = False, policy_reads_touch_set: bool = False,
                  policy_warmup_steps: int = 0, std_final_scale: float = 1.0, lr_final_scale: float = 1.0) -> None:
         super().__init__()
         if n_probes < 1:
@@ -155,8 +155,14 @@ class HapticGlance(pl.LightningModule):
         if touch_set_net not in touch_nets:
             raise ValueError(f"model.touch_set_net={touch_set_net!r}: expected one of {sorted(touch_nets)}")
         self.touch_set = touch_nets[touch_set_net]() if touch_set else None
-        self.location = LocationNetwork(dim, hidden=128, std_floor=std_floor, std_max=std_max, zero_mean=prior_exact)
-        self.baseline = Baseline(dim)
+        if policy_reads_touch_set and not touch_set:
+            raise ValueError("model.policy_reads_touch_set=true needs model.touch_set=true (the policy reads its "
+                             "pooled features)")
+        # beyond the paper: the policy may read the touch set's pooled features (detached) beside PCRN's summary
+        policy_dim = dim + (self.touch_set.pooled_dim if policy_reads_touch_set else 0)
+        self.location = LocationNetwork(policy_dim, hidden=128, std_floor=std_floor, std_max=std_max,
+                                        zero_mean=prior_exact)
+        self.baseline = Baseline(policy_dim)  # b_k reads the state s_k the policy reads
         self.sim: ProbeSimulator | None = None
         if point_frame not in ("episode", "first_touch"):
             raise ValueError(f"model.point_frame={point_frame!r}: expected 'episode' or 'first_touch'")
@@ -224,7 +230,10 @@ class HapticGlance(pl.LightningModule):
             return torch.rand(batch, 4, generator=generator) * 2 - 1
         if policy == "line_scan" or follow_scan:
             return self.scan_requests(points)[:, k]
-        state = self.location.state(rep_sum, k, batch_size=batch)
+        extra = None
+        if self.hparams.policy_reads_touch_set and k > 0:  # what the touch set pooled from probes 1..k
+            extra = self.touch_set.pooled(points[:, :k].to(self.device))[:, -1]
+        state = self.location.state(rep_sum, k, batch_size=batch, extra=extra)
         offsets = self.prior_offsets(points)
         offset = None if offsets is None else offsets[:, k].to(state.device)
         return self.location.sample(state, deterministic=deterministic, generator=generator, offset=offset)[0]
@@ -406,12 +415,16 @@ class HapticGlance(pl.LightningModule):
         the logits (B, N, C). sampled (B,) bool: the episodes that train the policy (default: all)."""
         rep = self.encoder(rollout.requests, self.encoder_points(rollout.points))
         logits = self.classifier(rep)
+        pooled = None
         if self.touch_set is not None:
-            logits = logits + self.touch_set(rollout.points)
+            pooled = self.touch_set.pooled(rollout.points)
+            logits = logits + self.touch_set.read(pooled)
         log_pi = baseline = None
         if self.hparams.policy == "learned" and learn_policy:
             # s_k from which request k was drawn; beyond the paper, the policy may read it without training the encoder
-            states = self.location.states(rep.detach() if self.hparams.policy_reads_detached else rep)
+            # and the touch set's pooled features, which learn from the cross-entropy only
+            extra = pooled.detach() if self.hparams.policy_reads_touch_set else None
+            states = self.location.states(rep.detach() if self.hparams.policy_reads_detached else rep, extra)
             offsets = self.prior_offsets(rollout.points)
             log_pi, mu, sigma = self.location.log_prob_and_moments(states, rollout.actions, offsets)
             baseline = self.baseline(states.detach())

@@ -56,22 +56,26 @@ class LocationNetwork(nn.Module):
                 self.net[-1].weight[:action_dim].zero_()
                 self.net[-1].bias[:action_dim].zero_()
 
-    def state(self, rep_sum: Tensor | None, k: int, batch_size: int | None = None) -> Tensor:
+    def state(self, rep_sum: Tensor | None, k: int, batch_size: int | None = None,
+              extra: Tensor | None = None) -> Tensor:
         """s_k from which request k + 1 is drawn: the mean of the first k representations, given as their sum
         rep_sum (B, D) (a rollout keeps it running), or the learned start for k = 0. With rep_sum None (k = 0
-        only) batch_size must be given, so the start is never silently 1 row."""
+        only) batch_size must be given, so the start is never silently 1 row. extra (B, E): features of the first
+        k probes read beside the mean (in_dim = D + E; beyond the paper)."""
         if k == 0:
             if rep_sum is None and batch_size is None:
                 raise ValueError("LocationNetwork.state(None, 0) needs batch_size")
             return self.start.expand(rep_sum.shape[0] if rep_sum is not None else batch_size, -1)
         if rep_sum is None:
             raise ValueError(f"LocationNetwork.state: k={k} needs the sum of the first k representations")
-        return rep_sum / k
+        return rep_sum / k if extra is None else torch.cat([rep_sum / k, extra], -1)
 
-    def states(self, rep: Tensor) -> Tensor:
-        """All s_i of a rollout at once, (B, N, D) -> (B, N, D): row i is state(rep, i)."""
+    def states(self, rep: Tensor, extra: Tensor | None = None) -> Tensor:
+        """All s_i of a rollout at once, (B, N, D) and extra (B, N, E) or None -> (B, N, D + E): row i is
+        state(rep, i, extra=extra[:, i - 1])."""
         start = self.start.expand(rep.shape[0], 1, -1)
-        return torch.cat([start, cumulative_mean(rep)[:, :-1]], 1)
+        summary = cumulative_mean(rep) if extra is None else torch.cat([cumulative_mean(rep), extra], -1)
+        return torch.cat([start, summary[:, :-1]], 1)
 
     def distribution(self, state: Tensor, action: Tensor, offset: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """(mu, sigma) of every component, (..., D), (..., A) -> (..., A) twice; masking lets mu_j, sigma_j

@@ -93,6 +93,8 @@ class TouchSetClassifier(nn.Module):
 
     With `n_prefixes` > 0 the head also reads which prefix it scores (one-hot, k < n_prefixes): one set of weights
     then need not read a scan's sparse first probes and its full set of probes alike.
+
+    `pooled()` gives what the head reads, so that a policy can read it too (model.policy_reads_touch_set).
     """
 
     def __init__(self, n_classes: int, shared: tuple[int, ...] = (64, 128, 256), hidden: int = 256,
@@ -102,14 +104,19 @@ class TouchSetClassifier(nn.Module):
         self.misses = misses
         self.n_prefixes = n_prefixes
         self.shared = mlp([4 if misses else 3, *shared], layer_norm=layer_norm)
-        self.head = mlp([shared[-1] + 1 + n_prefixes, hidden, n_classes], last_act=False, layer_norm=layer_norm)
+        self.pooled_dim = shared[-1] + 1  # the pooled features and the share of probes that touched
+        self.head = mlp([self.pooled_dim + n_prefixes, hidden, n_classes], last_act=False, layer_norm=layer_norm)
 
     @classmethod
     def wide(cls, n_classes: int, n_prefixes: int = 0) -> "TouchSetClassifier":
         return cls(n_classes, shared=(64, 128, 512), misses=True, layer_norm=True, n_prefixes=n_prefixes)
 
     def forward(self, points: Tensor) -> Tensor:
-        """points (B, N, 4): X, Y, Z and the contact flag T -> logits (B, N, n_classes).
+        """points (B, N, 4): X, Y, Z and the contact flag T -> logits (B, N, n_classes)."""
+        return self.read(self.pooled(points))
+
+    def pooled(self, points: Tensor) -> Tensor:
+        """points (B, N, 4) -> (B, N, pooled_dim): row k pools probes 1..k+1 and ends with their share of touches.
 
         The shared MLP runs once per (prefix k, probe j <= k) pair, N (N + 1) / 2 of them, not N x N: a point's
         features depend on the prefix (its centre), and the pairs with j > k would only be masked out. This MLP is
@@ -132,10 +139,15 @@ class TouchSetClassifier(nn.Module):
         if not self.misses:  # a prefix without a touch pools to zeros
             features = torch.where(count == 0, torch.zeros_like(features), features)
         share = count / torch.arange(1, n + 1, dtype=points.dtype, device=points.device)[:, None]
-        inputs = [features, share]
+        return torch.cat([features, share], -1)
+
+    def read(self, pooled: Tensor) -> Tensor:
+        """pooled (B, N, pooled_dim) -> logits (B, N, n_classes)."""
+        b, n = pooled.shape[:2]
+        inputs = [pooled]
         if self.n_prefixes:
             if n > self.n_prefixes:
                 raise ValueError(f"{n} probes per episode, but this touch-set classifier reads at most "
                                  f"n_prefixes={self.n_prefixes}")
-            inputs.append(torch.eye(n, self.n_prefixes, dtype=points.dtype, device=points.device).expand(b, -1, -1))
+            inputs.append(torch.eye(n, self.n_prefixes, dtype=pooled.dtype, device=pooled.device).expand(b, -1, -1))
         return self.head(torch.cat(inputs, -1))
