@@ -38,7 +38,7 @@ SEEDS = (0, 1, 2)  # training seeds of every row (the protocol)
 
 @dataclass(frozen=True)
 class Row:
-    config: str
+    """A row of the table; its config is configs/<row name>.yaml (config_of)."""
     label: str
     paper: str | None = None  # the paper's column this row reproduces
     learned: bool = True
@@ -46,115 +46,93 @@ class Row:
 
 
 ROWS = {
-    "pcrn_fc": Row("configs/pcrn_fc.yaml", "PCRN-FC", paper="PCRN-FC"),
-    "pcrn_nclass": Row("configs/pcrn_nclass.yaml", "PCRN-N-class", paper="PCRN-N-class"),
-    "lstm": Row("configs/lstm.yaml", "LSTM", paper="LSTM", encoder="lstm"),
-    "random": Row("configs/random.yaml", "random probes + PCRN-FC", learned=False),
-    "line_scan": Row("configs/line_scan.yaml", "line scan + PCRN-FC", learned=False),
-    "pcrn_fc_plus": Row("configs/pcrn_fc_plus.yaml", "PCRN-FC+ (beyond the paper)"),
-    "centre_scan": Row("configs/centre_scan.yaml", "centre-out scan + PCRN-FC (beyond the paper)", learned=False),
-    "pcrn_fc_centre": Row("configs/pcrn_fc_centre.yaml", "PCRN-FC+ from the centre-out scan (beyond the paper)"),
-    "centre_scan_touchset": Row("configs/centre_scan_touchset.yaml",
-                                "centre-out scan + PCRN-FC + touch set (beyond the paper)", learned=False),
-    "pcrn_fc_centre_touchset": Row("configs/pcrn_fc_centre_touchset.yaml",
-                                   "PCRN-FC+ from the centre-out scan + touch set (beyond the paper)"),
-    "pcrn_fc_centre_touchset_warmup": Row("configs/pcrn_fc_centre_touchset_warmup.yaml",
-                                          "PCRN-FC+ from the centre-out scan + touch set, policy from step 4000 "
+    "pcrn_fc": Row("PCRN-FC", paper="PCRN-FC"),
+    "pcrn_nclass": Row("PCRN-N-class", paper="PCRN-N-class"),
+    "lstm": Row("LSTM", paper="LSTM", encoder="lstm"),
+    "random": Row("random probes + PCRN-FC", learned=False),
+    "line_scan": Row("line scan + PCRN-FC", learned=False),
+    "pcrn_fc_plus": Row("PCRN-FC+ (beyond the paper)"),
+    "centre_scan": Row("centre-out scan + PCRN-FC (beyond the paper)", learned=False),
+    "pcrn_fc_centre": Row("PCRN-FC+ from the centre-out scan (beyond the paper)"),
+    "centre_scan_touchset": Row("centre-out scan + PCRN-FC + touch set (beyond the paper)", learned=False),
+    "pcrn_fc_centre_touchset": Row("PCRN-FC+ from the centre-out scan + touch set (beyond the paper)"),
+    "pcrn_fc_centre_touchset_warmup": Row("PCRN-FC+ from the centre-out scan + touch set, policy from step 4000 "
                                           "(beyond the paper)"),
-    "fan_scan_touchset": Row("configs/fan_scan_touchset.yaml", "fanned scan + PCRN-FC + touch set (beyond the paper)",
+    "fan_scan_touchset": Row("fanned scan + PCRN-FC + touch set (beyond the paper)",
                              learned=False),
-    "follow_scan_touchset": Row("configs/follow_scan_touchset.yaml",
-                                "centre-out scan following the touches + PCRN-FC + touch set (beyond the paper)",
+    "follow_scan_touchset": Row("centre-out scan following the touches + PCRN-FC + touch set (beyond the paper)",
                                 learned=False),
-    "fan_follow_scan_touchset": Row("configs/fan_follow_scan_touchset.yaml",
-                                    "fanned scan following the touches + PCRN-FC + touch set (beyond the paper)",
+    "fan_follow_scan_touchset": Row("fanned scan following the touches + PCRN-FC + touch set (beyond the paper)",
                                     learned=False),
-    "centre_scan_touchset_wide": Row("configs/centre_scan_touchset_wide.yaml",
-                                     "centre-out scan + PCRN-FC + wide touch set (beyond the paper)", learned=False),
-    "side_scan_touchset_wide": Row("configs/side_scan_touchset_wide.yaml",
-                                   "side-picking scan (steep first pair) + PCRN-FC + wide touch set (beyond the "
+    "centre_scan_touchset_wide": Row("centre-out scan + PCRN-FC + wide touch set (beyond the paper)", learned=False),
+    "side_scan_touchset_wide": Row("side-picking scan (steep first pair) + PCRN-FC + wide touch set (beyond the "
                                    "paper)", learned=False),
-    "centre_scan_touchset_wide_long": Row("configs/centre_scan_touchset_wide_long.yaml",
-                                          "centre-out scan + PCRN-FC + wide touch set, 16000 steps (beyond the "
+    "centre_scan_touchset_wide_long": Row("centre-out scan + PCRN-FC + wide touch set, 16000 steps (beyond the "
                                           "paper)", learned=False),
-    "centre_scan_touchset_wide_lr_decay": Row("configs/centre_scan_touchset_wide_lr_decay.yaml",
-                                              "centre-out scan + PCRN-FC + wide touch set, learning rate falling to "
+    "centre_scan_touchset_wide_lr_decay": Row("centre-out scan + PCRN-FC + wide touch set, learning rate falling to "
                                               "5% (beyond the paper)", learned=False),
-    "centre_scan_touchset_wide_long_lr_decay": Row("configs/centre_scan_touchset_wide_long_lr_decay.yaml",
-                                                   "centre-out scan + PCRN-FC + wide touch set, 16000 steps, learning "
+    "centre_scan_touchset_wide_long_lr_decay": Row("centre-out scan + PCRN-FC + wide touch set, 16000 steps, learning "
                                                    "rate falling to 5% (beyond the paper)", learned=False),
-    "coarse_scan_touchset_wide_lr_decay": Row("configs/coarse_scan_touchset_wide_lr_decay.yaml",
-                                              "coarse-first scan + PCRN-FC + wide touch set, learning rate falling "
+    "coarse_scan_touchset_wide_lr_decay": Row("coarse-first scan + PCRN-FC + wide touch set, learning rate falling "
                                               "to 5% (beyond the paper)", learned=False),
-    "coarse_scan_touchset_wide_prefix_lr_decay": Row("configs/coarse_scan_touchset_wide_prefix_lr_decay.yaml",
-                                                     "coarse-first scan + PCRN-FC + wide touch set told the prefix, "
+    "coarse_scan_touchset_wide_prefix_lr_decay": Row("coarse-first scan + PCRN-FC + wide touch set told the prefix, "
                                                      "learning rate falling to 5% (beyond the paper)", learned=False),
-    "centre_scan_touchset_wide_prefix_lr_decay": Row("configs/centre_scan_touchset_wide_prefix_lr_decay.yaml",
-                                                     "centre-out scan + PCRN-FC + wide touch set told the prefix, "
+    "centre_scan_touchset_wide_prefix_lr_decay": Row("centre-out scan + PCRN-FC + wide touch set told the prefix, "
                                                      "learning rate falling to 5% (beyond the paper)", learned=False),
-    "centre_scan_touchset_wide_ema": Row("configs/centre_scan_touchset_wide_ema.yaml",
-                                         "centre-out scan + PCRN-FC + wide touch set, moving average of the weights "
+    "centre_scan_touchset_wide_ema": Row("centre-out scan + PCRN-FC + wide touch set, moving average of the weights "
                                          "(beyond the paper)", learned=False),
-    "pcrn_fc_centre_touchset_warmup_wide": Row("configs/pcrn_fc_centre_touchset_warmup_wide.yaml",
-                                               "PCRN-FC+ from the centre-out scan + wide touch set, policy from step "
+    "pcrn_fc_centre_touchset_warmup_wide": Row("PCRN-FC+ from the centre-out scan + wide touch set, policy from step "
                                                "4000 (beyond the paper)"),
     "pcrn_fc_centre_touchset_warmup_wide_std_decay": Row(
-        "configs/pcrn_fc_centre_touchset_warmup_wide_std_decay.yaml",
         "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth "
         "(beyond the paper)"),
     "pcrn_fc_centre_touchset_warmup_wide_std_decay_lean": Row(
-        "configs/pcrn_fc_centre_touchset_warmup_wide_std_decay_lean.yaml",
         "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth, room "
         "to lean in the prior (beyond the paper)"),
     "pcrn_fc_centre_touchset_warmup_wide_std_decay_long": Row(
-        "configs/pcrn_fc_centre_touchset_warmup_wide_std_decay_long.yaml",
         "PCRN-FC+ from the centre-out scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
         "from step 8000 (beyond the paper)"),
     "pcrn_fc_centre_touchset_warmup_wide_std_decay_exact": Row(
-        "configs/pcrn_fc_centre_touchset_warmup_wide_std_decay_exact.yaml",
         "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth, "
         "policy starting exactly on the scan (beyond the paper)"),
     "pcrn_fc_centre_touchset_warmup_wide_std_decay_long_exact": Row(
-        "configs/pcrn_fc_centre_touchset_warmup_wide_std_decay_long_exact.yaml",
         "PCRN-FC+ from the centre-out scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
         "from step 8000, policy starting exactly on the scan (beyond the paper)"),
     "pcrn_fc_centre_touchset_warmup_wide_std_decay_exact_anchor": Row(
-        "configs/pcrn_fc_centre_touchset_warmup_wide_std_decay_exact_anchor.yaml",
         "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth, "
         "policy starting exactly on the scan and held near it (beyond the paper)"),
     "pcrn_fc_centre_touchset_warmup_wide_std_decay_exact_mean_share": Row(
-        "configs/pcrn_fc_centre_touchset_warmup_wide_std_decay_exact_mean_share.yaml",
         "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth, "
         "policy starting exactly on the scan, half of each batch probed with its mean action (beyond the paper)"),
     "pcrn_fc_centre_touchset_warmup_wide_std_decay_exact_anchor_mean_share": Row(
-        "configs/pcrn_fc_centre_touchset_warmup_wide_std_decay_exact_anchor_mean_share.yaml",
         "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth, "
         "policy starting exactly on the scan and held near it, half of each batch probed with its mean action "
         "(beyond the paper)"),
     "pcrn_fc_centre_touchset_warmup_wide_std_decay_exact_anchor_lr_decay": Row(
-        "configs/pcrn_fc_centre_touchset_warmup_wide_std_decay_exact_anchor_lr_decay.yaml",
         "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth, "
         "policy starting exactly on the scan and held near it, learning rate falling to 5% (beyond the paper)"),
     "pcrn_fc_centre_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay": Row(
-        "configs/pcrn_fc_centre_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay.yaml",
         "PCRN-FC+ from the centre-out scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
         "from step 8000, policy starting exactly on the scan and held near it, learning rate falling to 5% (beyond "
         "the paper)"),
     "pcrn_fc_centre_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_reads_touchset": Row(
-        "configs/pcrn_fc_centre_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_reads_touchset.yaml",
         "PCRN-FC+ from the centre-out scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
         "from step 8000, policy starting exactly on the scan and held near it, learning rate falling to 5%, the policy "
         "reading the touch set's pooled features (beyond the paper)"),
     "pcrn_fc_coarse_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay": Row(
-        "configs/pcrn_fc_coarse_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay.yaml",
         "PCRN-FC+ from the coarse-first scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
         "from step 8000, policy starting exactly on the scan and held near it, learning rate falling to 5% (beyond "
         "the paper)"),
     "pcrn_fc_centre_touchset_warmup_wide_std_decay_exact_anchor_ema": Row(
-        "configs/pcrn_fc_centre_touchset_warmup_wide_std_decay_exact_anchor_ema.yaml",
         "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth, "
         "policy starting exactly on the scan and held near it, moving average of the weights (beyond the paper)"),
 }
+
+
+def config_of(row: str) -> str:
+    """The config that trains `row`, relative to the repository root."""
+    return f"configs/{row}.yaml"
+
 
 # Table 1 of Riou et al. (ICASSP 2021): accuracy after k probes, 4 objects, held-out poses (no entry for k=1).
 PAPER = {
@@ -177,9 +155,9 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out_dir: Path, steps: in
 
     code_commit = commit()  # the code this run trains with, read before it starts
     name = run_name(row, seed)
-    facts = fit_and_test(ROOT / ROWS[row].config, seed, runs_dir / name, eval_seed=EVAL_SEED,
+    facts = fit_and_test(ROOT / config_of(row), seed, runs_dir / name, eval_seed=EVAL_SEED,
                          test_episodes=test_episodes, steps=steps)
-    result = {"row": row, "label": ROWS[row].label, "config": ROWS[row].config, "seed": seed, **facts,
+    result = {"row": row, "label": ROWS[row].label, "config": config_of(row), "seed": seed, **facts,
               "parallel_jobs": jobs, "commit": code_commit, "hardware": hardware()}
     write_atomic(out_dir / "runs" / f"{name}.json", json.dumps(result, indent=1) + "\n")
 
@@ -203,7 +181,7 @@ def summarise(runs: dict[str, list[dict]]) -> dict[str, dict]:
     """Mean and std (over seeds, ddof=1; 0 for one seed) of the accuracy after each probe, per row."""
     table = {}
     for row, rs in runs.items():
-        entry = {"label": ROWS[row].label, "config": ROWS[row].config, "seeds": [r["seed"] for r in rs]}
+        entry = {"label": ROWS[row].label, "config": config_of(row), "seeds": [r["seed"] for r in rs]}
         for key in ("accuracy", "accuracy_mean_action"):
             if all(r[key] is not None for r in rs):
                 values = np.array([r[key] for r in rs])

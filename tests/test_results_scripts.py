@@ -61,6 +61,12 @@ def test_table_merge_means_stds_paper_columns_and_targets(tmp_path):
     assert (tmp_path / "table1.png").read_bytes()[:4] == b"\x89PNG"
 
 
+def test_every_row_is_trained_by_its_shipped_config():
+    table1 = script("reproduce_table1")
+    missing = [row for row in table1.ROWS if not (table1.ROOT / table1.config_of(row)).is_file()]
+    assert not missing and len(table1.ROWS) >= 5
+
+
 def test_best_pcrn_variant_is_chosen_on_validation_not_test(tmp_path):
     table1 = script("reproduce_table1")
     fake_run(tmp_path, "pcrn_fc", 0, [0.9] * 10, val=0.6)  # best on test, worse on val
