@@ -232,7 +232,7 @@ class HapticGlance(pl.LightningModule):
             return self.scan_requests(points)[:, k]
         extra = None
         if self.hparams.policy_reads_touch_set and k > 0:  # what the touch set pooled from probes 1..k
-            extra = self.touch_set.pooled(points[:, :k].to(self.device))[:, -1]
+            extra = self.touch_set.pooled(points[:, :k].to(self.device), last_only=True)[:, -1]
         state = self.location.state(rep_sum, k, batch_size=batch, extra=extra)
         offsets = self.prior_offsets(points)
         offset = None if offsets is None else offsets[:, k].to(state.device)

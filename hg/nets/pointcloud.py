@@ -115,8 +115,9 @@ class TouchSetClassifier(nn.Module):
         """points (B, N, 4): X, Y, Z and the contact flag T -> logits (B, N, n_classes)."""
         return self.read(self.pooled(points))
 
-    def pooled(self, points: Tensor) -> Tensor:
+    def pooled(self, points: Tensor, last_only: bool = False) -> Tensor:
         """points (B, N, 4) -> (B, N, pooled_dim): row k pools probes 1..k+1 and ends with their share of touches.
+        last_only: only the last row, (B, 1, pooled_dim), from N pairs; what a probe loop reads at each probe.
 
         The shared MLP runs once per (prefix k, probe j <= k) pair, N (N + 1) / 2 of them, not N x N: a point's
         features depend on the prefix (its centre), and the pairs with j > k would only be masked out. This MLP is
@@ -127,7 +128,11 @@ class TouchSetClassifier(nn.Module):
         mask = prefix * touched[:, None, :]  # (B, K, J): probe j touched and is in prefix k
         count = mask.sum(-1, keepdim=True)  # (B, K, 1)
         centre = (mask @ xyz) / count.clamp(min=1)  # (B, K, 3)
-        k, j = torch.tril_indices(n, n, device=points.device)  # the pairs, prefix by prefix
+        if last_only:  # the pairs of the last prefix
+            j = torch.arange(n, device=points.device)
+            k = torch.full_like(j, n - 1)
+        else:  # the pairs, prefix by prefix
+            k, j = torch.tril_indices(n, n, device=points.device)
         relative = (xyz[:, j] - centre[:, k]) * self.scale  # (B, P, 3)
         if self.misses:  # every probe of the prefix is pooled
             features = self.shared(torch.cat([relative, touched[:, j, None]], -1))  # (B, P, F)
@@ -139,7 +144,8 @@ class TouchSetClassifier(nn.Module):
         if not self.misses:  # a prefix without a touch pools to zeros
             features = torch.where(count == 0, torch.zeros_like(features), features)
         share = count / torch.arange(1, n + 1, dtype=points.dtype, device=points.device)[:, None]
-        return torch.cat([features, share], -1)
+        pooled = torch.cat([features, share], -1)
+        return pooled[:, -1:] if last_only else pooled
 
     def read(self, pooled: Tensor) -> Tensor:
         """pooled (B, N, pooled_dim) -> logits (B, N, n_classes)."""
