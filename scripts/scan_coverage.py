@@ -2,11 +2,12 @@
 
 A classifier can only name an object it has touched, so the touches a scan collects, and how early, bound what
 the line-scan baselines and the policies started from them (`model.prior: line_scan`) can reach. For each fixed
-scan (`model.scan_span` x `model.scan_order` x `model.scan_lean` x `model.scan_follow` x `model.scan_cross` x
-`model.scan_reach` x `model.scan_side` x `model.scan_side_first`, as in `HapticGlance.scan_requests`) and
-for each checkpoint's mean-action policy (`--ckpt`), on the same episodes of a pose split: mean touches per
-episode after all probes and after half of them, the share of episodes with at least one touch, the mean
-tilt of the requests from vertical, and the share of the leaning probes that lean towards the object's side.
+scan (`model.scan_span` x `model.scan_order` x `model.scan_lean` x `model.scan_follow` (x `_probes`) x
+`model.scan_cross` x `model.scan_reach` x `model.scan_side` x `model.scan_side_first`, as in
+`HapticGlance.scan_requests`) and for each checkpoint's mean-action policy (`--ckpt`), on the same episodes of a
+pose split: mean touches per episode after all probes and after half of them, the share of episodes with at
+least one touch, the mean tilt of the requests from vertical, and the share of the leaning probes that lean
+towards the object's side.
 For a checkpoint also its accuracy after all probes on those rollouts,
 split by how many probes touched (a classifier can only be as good as what it touched) and by how far the
 object lies off the probe line. Seconds on one core.
@@ -269,6 +270,9 @@ def main() -> None:
                         help="model.scan_lean values (0: straight down)")
     parser.add_argument("--follows", type=float, nargs="+", default=[0.0],
                         help="model.scan_follow values (0: the scan ignores its touches)")
+    parser.add_argument("--follow-probes", type=int, nargs="+", default=[0],
+                        help="model.scan_follow_probes values: how many probes after the first touch follow it (0: "
+                             "all; only with --follows > 0)")
     parser.add_argument("--crosses", type=float, nargs="+", default=[0.0],
                         help="model.scan_cross values (0: no leaning probes after the first touch)")
     parser.add_argument("--reaches", type=float, nargs="+", default=[0.0],
@@ -305,16 +309,18 @@ def main() -> None:
     torch.set_num_threads(1)
 
     scans = {f"{order}-span{span:g}" + (f"-lean{lean:g}" if lean else "") + (f"-follow{follow:g}" if follow else "")
+             + (f"x{follow_probes}" if follow_probes else "")
              + (f"-cross{cross:g}" if cross else "") + (f"-reach{reach:g}" if reach else "")
              + (f"-side{side:g}" if side else "") + (f"-first{first:g}" if first else "")
              + (f"-aim{aim}" if aim != "0" else ""):
              scan_model(aim, n_probes=args.n_probes, policy="line_scan", scan_span=span, scan_order=order,
-                        scan_lean=lean, scan_follow=follow, scan_cross=cross, scan_reach=reach, scan_side=side,
-                        scan_side_first=first)
+                        scan_lean=lean, scan_follow=follow, scan_follow_probes=follow_probes, scan_cross=cross,
+                        scan_reach=reach, scan_side=side, scan_side_first=first)
              for order in args.orders for span in args.spans for lean in args.leans for follow in args.follows
-             for cross in args.crosses for reach in args.reaches for side in args.sides
-             for first in args.side_firsts for aim in args.aims
+             for follow_probes in args.follow_probes for cross in args.crosses for reach in args.reaches
+             for side in args.sides for first in args.side_firsts for aim in args.aims
              if scan_options_combine(lean, follow, cross, reach, side) and (side or not first)
+             and (follow or not follow_probes)
              and (aim == "0" or (bool(side) == (aim == "side") and not (lean or cross or reach)))}
     models = dict(scans)
     for path in args.ckpt:

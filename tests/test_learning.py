@@ -315,6 +315,28 @@ def test_follow_scan_probes_around_the_touches_and_touches_more(data):
         HapticGlance(scan_follow=2.0)
 
 
+def test_follow_scan_limited_to_k_probes_then_goes_on_where_it_stopped(data):
+    model = make_model(data, policy="line_scan", scan_span=0.5, scan_order="centre_out", scan_follow=0.1,
+                       scan_follow_probes=1)
+    lo, hi = model.sim.scene.probe_y
+    points = torch.zeros(2, 4, 4)  # episode 0 touches at its first probe (y = 0.1 m) and at its third; 1 never
+    points[0, 0], points[0, 2] = torch.tensor([0.0, 0.1, -0.2, 1.0]), torch.tensor([0.0, 0.3, -0.2, 1.0])
+    points[..., :3] *= model.hparams.point_scale
+    requests = model.scan_requests(points)
+    scan = model.line_scan_requests()
+    to_py = lambda y: (y - lo) / (0.5 * (hi - lo)) - 1  # noqa: E731
+    # one follow-up one step up from the touch, then the scan's 2nd and 3rd places (its last is dropped), even
+    # after the later touch
+    torch.testing.assert_close(requests[0, :, 0], torch.stack([scan[0, 0], torch.tensor(to_py(0.1) + 0.1),
+                                                               scan[1, 0], scan[2, 0]]))
+    torch.testing.assert_close(requests[1], scan)  # nothing touched: the plain scan
+    model.sim.close()
+    with pytest.raises(ValueError, match="model.scan_follow_probes=4: must be in"):
+        HapticGlance(n_probes=4, scan_follow=0.1, scan_follow_probes=4)
+    with pytest.raises(ValueError, match="model.scan_follow_probes=1: .* needs model.scan_follow"):
+        HapticGlance(scan_follow_probes=1)
+
+
 def test_cross_scan_leans_both_ways_at_its_first_touch_then_goes_on(data):
     model = make_model(data, policy="line_scan", scan_span=0.5, scan_order="centre_out", scan_cross=1.0)
     points = torch.zeros(2, 4, 4)  # episode 0 first touches at probe 1; episode 1 never touches

@@ -114,7 +114,8 @@ class HapticGlance(pl.LightningModule):
                  prior_anchor: float = 0.0, mean_action_share: float = 0.0, scan_span: float = 1.0,
                  scan_order: ScanOrder = "sweep", scan_lean: float = 0.0, scan_follow: float = 0.0,
                  scan_cross: float = 0.0, scan_reach: float = 0.0, scan_side: float = 0.0,
-                 scan_side_first: float = 0.0, point_frame: Literal["episode", "first_touch"] = "episode",
+                 scan_side_first: float = 0.0, scan_follow_probes: int = 0,
+                 point_frame: Literal["episode", "first_touch"] = "episode",
                  touch_set: bool = False, touch_set_net: Literal["small", "wide"] = "small",
                  touch_set_prefix: bool = False, policy_reads_touch_set: bool = False,
                  policy_warmup_steps: int = 0, std_final_scale: float = 1.0, lr_final_scale: float = 1.0) -> None:
@@ -184,6 +185,12 @@ class HapticGlance(pl.LightningModule):
         if scan_side and n_probes < 2:
             raise ValueError(f"model.scan_side={scan_side}: the side-picking scan needs model.n_probes >= 2, got "
                              f"{n_probes}")
+        if not 0 <= scan_follow_probes < n_probes:
+            raise ValueError(f"model.scan_follow_probes={scan_follow_probes}: must be in [0, n_probes - 1 = "
+                             f"{n_probes - 1}] (how many probes after the first touch follow it; 0: all of them)")
+        if scan_follow_probes and not scan_follow:
+            raise ValueError(f"model.scan_follow_probes={scan_follow_probes}: limits the probes following the first "
+                             "touch, so it needs model.scan_follow > 0")
         if not scan_options_combine(scan_lean, scan_follow, scan_cross, scan_reach, scan_side):
             raise ValueError(f"model.scan_lean={scan_lean}, model.scan_follow={scan_follow}, model.scan_cross="
                              f"{scan_cross}, model.scan_reach={scan_reach}, model.scan_side={scan_side}: choose one "
@@ -266,7 +273,10 @@ class HapticGlance(pl.LightningModule):
         adapts: from the probe after an episode's first touch on, it probes around the mean y of the touches so
         far, `scan_follow` request units apart, alternating sides (+1, -1, +2, -2, ... steps), in the direction
         of the probe that touched first, because a scan that walks on past the object wastes its probes on bare
-        soil. With `scan_cross`, the two probes after the first touch re-enter at its y leaning to +x and to -x,
+        soil. With `scan_follow_probes` K only the K probes after the first touch follow it (the local shape, early)
+        and the scan then goes on where it stopped (its last K places are dropped), since touches packed into a few
+        centimetres say less about the object than a profile spread over the scan. With `scan_cross`, the two
+        probes after the first touch re-enter at its y leaning to +x and to -x,
         then the scan goes on where it stopped: how the surface falls away across the line tells a ball from a
         pipe crossing it, and a leaning probe reaches an object lying off the line. With `scan_reach`, the scan
         goes straight down for its first third; then, while nothing is touched, it leans to +x and -x in turn
@@ -297,6 +307,11 @@ class HapticGlance(pl.LightningModule):
         # off the line, a straight one at the same y would miss it
         direction = scan.gather(1, first.clamp(max=n - 1)[:, None, None].expand(-1, n, 4))
         followed = torch.cat([(mean_py + step * sides).clamp(-1, 1)[..., None], direction[..., 1:]], -1)
+        if h.scan_follow_probes:  # the K follow-ups, then request k is the scan's request k - K
+            follow = follow & (j < h.scan_follow_probes)[..., None]
+            k = j + first[:, None] + 1
+            resumed = torch.where(j >= h.scan_follow_probes, k - h.scan_follow_probes, k)
+            scan = scan.gather(1, resumed[..., None].expand(-1, -1, 4))
         return torch.where(follow, followed, scan)
 
     def cross_checked(self, scan: Tensor, first: Tensor) -> Tensor:
