@@ -79,6 +79,9 @@ ROWS = {
                                                      "learning rate falling to 5% (beyond the paper)", learned=False),
     "centre_scan_touchset_wide_prefix_lr_decay": Row("centre-out scan + PCRN-FC + wide touch set told the prefix, "
                                                      "learning rate falling to 5% (beyond the paper)", learned=False),
+    "follow2_scan_touchset_wide_lr_decay": Row("centre-out scan following its first touch for 2 probes + PCRN-FC + "
+                                               "wide touch set, learning rate falling to 5% (beyond the paper)",
+                                               learned=False),
     "centre_scan_touchset_wide_ema": Row("centre-out scan + PCRN-FC + wide touch set, moving average of the weights "
                                          "(beyond the paper)", learned=False),
     "pcrn_fc_centre_touchset_warmup_wide": Row("PCRN-FC+ from the centre-out scan + wide touch set, policy from step "
@@ -119,6 +122,10 @@ ROWS = {
         "PCRN-FC+ from the centre-out scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
         "from step 8000, policy starting exactly on the scan and held near it, learning rate falling to 5%, the policy "
         "reading the touch set's pooled features (beyond the paper)"),
+    "pcrn_fc_follow2_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay": Row(
+        "PCRN-FC+ from the centre-out scan following its first touch for 2 probes + wide touch set, std shrinking to "
+        "a tenth, 16000 steps with the policy from step 8000, policy starting exactly on the scan and held near it, "
+        "learning rate falling to 5% (beyond the paper)"),
     "pcrn_fc_coarse_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay": Row(
         "PCRN-FC+ from the coarse-first scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
         "from step 8000, policy starting exactly on the scan and held near it, learning rate falling to 5% (beyond "
