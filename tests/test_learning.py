@@ -330,6 +330,9 @@ def test_follow_scan_limited_to_k_probes_then_goes_on_where_it_stopped(data):
     torch.testing.assert_close(requests[0, :, 0], torch.stack([scan[0, 0], torch.tensor(to_py(0.1) + 0.1),
                                                                scan[1, 0], scan[2, 0]]))
     torch.testing.assert_close(requests[1], scan)  # nothing touched: the plain scan
+    causal = points.clone()
+    causal[:, 3] = torch.tensor([0.0, 0.5, -0.2, 1.0])  # what the last probe returns cannot move any request
+    torch.testing.assert_close(model.scan_requests(causal), requests)
     model.sim.close()
     with pytest.raises(ValueError, match="model.scan_follow_probes=4: must be in"):
         HapticGlance(n_probes=4, scan_follow=0.1, scan_follow_probes=4)
