@@ -300,7 +300,8 @@ class HapticGlance(pl.LightningModule):
         before = torch.cumsum(touched, 1) - touched  # touches among probes 1..k-1, for request k
         y_sum = torch.cumsum(touched * points[..., 1], 1) - touched * points[..., 1]
         mean_py = self.sim.scene.line_request(y_sum / before.clamp(min=1) / self.hparams.point_scale)
-        j = torch.arange(n, device=points.device) - first[:, None] - 1  # follow-up probe index, -1 at the first touch
+        k = torch.arange(n, device=points.device)
+        j = k - first[:, None] - 1  # follow-up probe index, -1 at the first touch
         sides = torch.where(j % 2 == 0, j // 2 + 1, -(j // 2 + 1)).float()  # +1, -1, +2, -2, ...
         follow = (before > 0)[..., None]
         # a follow-up probe keeps the direction of the probe that first touched: if a leaning probe found the object
@@ -309,7 +310,6 @@ class HapticGlance(pl.LightningModule):
         followed = torch.cat([(mean_py + step * sides).clamp(-1, 1)[..., None], direction[..., 1:]], -1)
         if h.scan_follow_probes:  # the K follow-ups, then request k is the scan's request k - K
             follow = follow & (j < h.scan_follow_probes)[..., None]
-            k = j + first[:, None] + 1
             resumed = torch.where(j >= h.scan_follow_probes, k - h.scan_follow_probes, k)
             scan = scan.gather(1, resumed[..., None].expand(-1, -1, 4))
         return torch.where(follow, followed, scan)
