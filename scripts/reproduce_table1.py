@@ -133,6 +133,10 @@ ROWS = {
     "pcrn_fc_centre_touchset_warmup_wide_std_decay_exact_anchor_ema": Row(
         "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth, "
         "policy starting exactly on the scan and held near it, moving average of the weights (beyond the paper)"),
+    "pcrn_fc_centre_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_ema": Row(
+        "PCRN-FC+ from the centre-out scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
+        "from step 8000, policy starting exactly on the scan and held near it, learning rate falling to 5%, moving "
+        "average of the weights (beyond the paper)"),
 }
 
 
