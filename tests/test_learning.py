@@ -237,6 +237,21 @@ def test_points_relative_to_first_touch():
         HapticGlance(point_frame="touch")
 
 
+def test_classifier_none_scores_with_the_touch_set_alone(data):
+    model = make_model(data, classifier="none", policy="line_scan", touch_set=True)
+    batch = first_batch(data)
+    rollout = model.rollout(batch["labels"], batch["poses"], int(batch["seed"]))
+    terms, logits = model.evaluate(rollout, batch["labels"])
+    assert model.classifier is None
+    torch.testing.assert_close(logits, model.touch_set(rollout.points))
+    terms["loss"].backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.touch_set.parameters())
+    assert all(p.grad is None for p in model.encoder.parameters())  # PCRN takes no part
+    for kwargs in ({"policy": "line_scan"}, {"policy": "learned", "touch_set": True}):
+        with pytest.raises(ValueError, match="classifier='none'.*needs model.touch_set=true and a fixed policy"):
+            make_model(data, classifier="none", **kwargs)
+
+
 @pytest.mark.parametrize("policy", ["random", "line_scan"])
 def test_ablation_policies(data, policy):
     model = make_model(data, policy=policy)

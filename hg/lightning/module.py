@@ -104,7 +104,7 @@ class HapticGlance(pl.LightningModule):
     """
 
     def __init__(self, n_classes: int = 4, n_probes: int = 10, encoder: Literal["pcrn", "lstm"] = "pcrn",
-                 classifier: Literal["fc", "nclass", "linear"] = "fc",
+                 classifier: Literal["fc", "nclass", "linear", "none"] = "fc",
                  policy: Literal["learned", "random", "line_scan"] = "learned", width: int = 128,
                  representation: int = 256, hidden: int = 256, std_floor: float = 0.05, std_max: float = 1.0,
                  gamma: float = 0.95, beta: float = 1.0, lr: float = 1e-3, point_scale: float = 2.0,
@@ -140,13 +140,18 @@ class HapticGlance(pl.LightningModule):
         else:
             raise ValueError(f"model.encoder={encoder!r}: expected 'pcrn' or 'lstm'")
         dim = self.encoder.out_dim
+        # "none", beyond the paper: no head on the encoder, the touch set's logits alone (an ablation of PCRN)
         classifiers = {"fc": lambda: FCClassifier(dim, n_classes, hidden),
                        "nclass": lambda: NClassClassifier(dim, n_classes, n_probes, hidden),
-                       "linear": lambda: LinearClassifier(dim, n_classes)}
+                       "linear": lambda: LinearClassifier(dim, n_classes), "none": lambda: None}
         if classifier not in classifiers:
             raise ValueError(f"model.classifier={classifier!r}: expected one of {sorted(classifiers)}")
         if policy not in ("learned", "random", "line_scan"):
             raise ValueError(f"model.policy={policy!r}: expected 'learned', 'random' or 'line_scan'")
+        if classifier == "none" and not (touch_set and policy != "learned"):
+            raise ValueError(f"model.classifier='none' (the touch set's logits alone) needs model.touch_set=true and "
+                             f"a fixed policy ('random' or 'line_scan'), got touch_set={touch_set}, policy={policy!r}: "
+                             "a learned policy reads the encoder, which only the classifier trains")
         self.classifier = classifiers[classifier]()
         # beyond the paper: the logits of a translation-invariant classifier of the touched points are added
         # touch_set_prefix: its head also reads which prefix it scores (one-hot)
@@ -428,12 +433,14 @@ class HapticGlance(pl.LightningModule):
                  sampled: Tensor | None = None) -> tuple[dict[str, Tensor], Tensor]:
         """Forward pass over a finished rollout: the loss terms (without the policy's when not learn_policy) and
         the logits (B, N, C). sampled (B,) bool: the episodes that train the policy (default: all)."""
-        rep = self.encoder(rollout.requests, self.encoder_points(rollout.points))
-        logits = self.classifier(rep)
-        pooled = None
+        logits = pooled = None
+        if self.classifier is not None:
+            rep = self.encoder(rollout.requests, self.encoder_points(rollout.points))
+            logits = self.classifier(rep)
         if self.touch_set is not None:
             pooled = self.touch_set.pooled(rollout.points)
-            logits = logits + self.touch_set.read(pooled)
+            read = self.touch_set.read(pooled)
+            logits = read if logits is None else logits + read
         log_pi = baseline = None
         if self.hparams.policy == "learned" and learn_policy:
             # s_k from which request k was drawn; beyond the paper, the policy may read it without training the encoder
