@@ -73,6 +73,8 @@ ROWS = {
                                               "5% (beyond the paper)", learned=False),
     "centre_scan_touchset_wide_long_lr_decay": Row("centre-out scan + PCRN-FC + wide touch set, 16000 steps, learning "
                                                    "rate falling to 5% (beyond the paper)", learned=False),
+    "centre_scan_touchset_wide_32k_lr_decay": Row("centre-out scan + PCRN-FC + wide touch set, 32000 steps, learning "
+                                                  "rate falling to 5% (beyond the paper)", learned=False),
     "coarse_scan_touchset_wide_lr_decay": Row("coarse-first scan + PCRN-FC + wide touch set, learning rate falling "
                                               "to 5% (beyond the paper)", learned=False),
     "coarse_scan_touchset_wide_prefix_lr_decay": Row("coarse-first scan + PCRN-FC + wide touch set told the prefix, "
