@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import pytorch_lightning as pl
 import torch
+import torch.nn.functional as F
 from pytorch_lightning.callbacks import ModelCheckpoint
 
 from hg.lightning import HapticGlance, ProbeDataModule, discounted_returns, hybrid_loss
@@ -250,6 +251,20 @@ def test_classifier_none_scores_with_the_touch_set_alone(data):
     for kwargs in ({"policy": "line_scan"}, {"policy": "learned", "touch_set": True}):
         with pytest.raises(ValueError, match="classifier='none'.*needs model.touch_set=true and a fixed policy"):
             make_model(data, classifier="none", **kwargs)
+
+
+def test_ce_prefixes_last_scores_only_the_full_episode(data):
+    model = make_model(data, policy="line_scan", ce_prefixes="last")
+    batch = first_batch(data)
+    rollout = model.rollout(batch["labels"], batch["poses"], int(batch["seed"]))
+    terms, logits = model.evaluate(rollout, batch["labels"])
+    torch.testing.assert_close(terms["loss"], F.cross_entropy(logits[:, -1], batch["labels"]))
+    every = hybrid_loss(logits, batch["labels"], None, None, gamma=0.9, beta=1.0)["loss"]
+    assert not torch.isclose(terms["loss"], every)  # the default scores every prefix
+    with pytest.raises(ValueError, match="ce_prefixes='last' needs a fixed policy"):
+        make_model(data, ce_prefixes="last")
+    with pytest.raises(ValueError, match="model.ce_prefixes='first'"):
+        make_model(data, policy="line_scan", ce_prefixes="first")
 
 
 @pytest.mark.parametrize("policy", ["random", "line_scan"])

@@ -45,14 +45,16 @@ def relative_to_first_touch(points: Tensor) -> Tensor:
 
 def hybrid_loss(logits: Tensor, labels: Tensor, log_pi: Tensor | None, baseline: Tensor | None, gamma: float,
                 beta: float, normalize_advantage: bool = False,
-                reward: Literal["correct", "log_gain"] = "correct", sampled: Tensor | None = None) -> dict[str, Tensor]:
+                reward: Literal["correct", "log_gain"] = "correct", sampled: Tensor | None = None,
+                ce_prefixes: Literal["all", "last"] = "all") -> dict[str, Tensor]:
     """The hybrid update rule, eq. (6), as a loss to minimise; every term is returned for logging.
 
     logits (B, N, C): prediction after each probe; log_pi (B, N): log pi(a_k | s_k) of the detached requests;
     baseline (B, N): b_k from detached states. Without a policy to train (random, line scan) only the
     cross-entropy remains. sampled (B,) bool, beyond the paper: the episodes whose probes were drawn from the
     policy; only they train the policy and the baseline (the others were probed with its mean action, and
-    REINFORCE needs sampled actions), while the cross-entropy takes every episode.
+    REINFORCE needs sampled actions), while the cross-entropy takes every episode. ce_prefixes "last", beyond the
+    paper: the cross-entropy scores only the prediction after the last probe (an ablation of scoring every prefix).
     """
     n_probes = logits.shape[1]
     correct = (logits.argmax(-1) == labels[:, None]).float()
@@ -62,7 +64,10 @@ def hybrid_loss(logits: Tensor, labels: Tensor, log_pi: Tensor | None, baseline:
         log_p = logits.detach().log_softmax(-1).gather(-1, labels[:, None, None].expand(-1, n_probes, 1)).squeeze(-1)
         rewards = torch.diff(log_p, dim=1, prepend=torch.full_like(log_p[:, :1], -math.log(logits.shape[-1])))
     # sum_o y_o log pi_c(o), on the prediction after every probe
-    cross_entropy = F.cross_entropy(logits.flatten(0, 1), labels.repeat_interleave(n_probes))
+    if ce_prefixes == "last":
+        cross_entropy = F.cross_entropy(logits[:, -1], labels)
+    else:
+        cross_entropy = F.cross_entropy(logits.flatten(0, 1), labels.repeat_interleave(n_probes))
     terms = {"loss_ce": cross_entropy, "reward": rewards.mean(), "acc": correct[:, -1].mean()}
     if log_pi is None:
         terms["loss"] = cross_entropy
@@ -118,7 +123,8 @@ class HapticGlance(pl.LightningModule):
                  point_frame: Literal["episode", "first_touch"] = "episode",
                  touch_set: bool = False, touch_set_net: Literal["small", "wide"] = "small",
                  touch_set_prefix: bool = False, policy_reads_touch_set: bool = False,
-                 policy_warmup_steps: int = 0, std_final_scale: float = 1.0, lr_final_scale: float = 1.0) -> None:
+                 policy_warmup_steps: int = 0, std_final_scale: float = 1.0, lr_final_scale: float = 1.0,
+                 ce_prefixes: Literal["all", "last"] = "all") -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -132,6 +138,11 @@ class HapticGlance(pl.LightningModule):
                              "training step, as a share of model.lr)")
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"model.gamma={gamma}: the discount must be in [0, 1]")
+        if ce_prefixes not in ("all", "last"):
+            raise ValueError(f"model.ce_prefixes={ce_prefixes!r}: expected 'all' or 'last'")
+        if ce_prefixes == "last" and policy == "learned":
+            raise ValueError("model.ce_prefixes='last' needs a fixed policy ('random' or 'line_scan'): a learned "
+                             "policy's reward after every probe needs the predictions of every prefix trained")
         self.save_hyperparameters()
         if encoder == "pcrn":
             self.encoder = PCRN(width=width, out_dim=representation)
@@ -454,7 +465,8 @@ class HapticGlance(pl.LightningModule):
         # the gradient of log N grows as 1 / std: a shrinking std must not let the policy term crowd the others
         # out of the clipped gradient
         beta = h.beta * float(self.location.std_scale)
-        terms = hybrid_loss(logits, labels, log_pi, baseline, h.gamma, beta, h.normalize_advantage, h.reward, sampled)
+        terms = hybrid_loss(logits, labels, log_pi, baseline, h.gamma, beta, h.normalize_advantage, h.reward, sampled,
+                            h.ce_prefixes)
         if log_pi is not None:
             sigma = sigma.detach().mean((0, 1))  # too large a std is the usual cause of poor accuracy: watch it
             terms.update({f"std_{c}": sigma[i] for i, c in enumerate(COMPONENTS)})
