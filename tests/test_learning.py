@@ -267,6 +267,19 @@ def test_ce_prefixes_last_scores_only_the_full_episode(data):
         make_model(data, policy="line_scan", ce_prefixes="first")
 
 
+def test_final_touch_set_answers_after_the_last_probe_only(data):
+    model = make_model(data, policy="line_scan", touch_set=True, final_touch_set=True)
+    batch = first_batch(data)
+    rollout = model.rollout(batch["labels"], batch["poses"], int(batch["seed"]))
+    terms, logits = model.evaluate(rollout, batch["labels"])
+    shared = model.classifier(model.encoder(rollout.requests, rollout.points)) + model.touch_set(rollout.points)
+    torch.testing.assert_close(logits[:, :-1], shared[:, :-1])
+    torch.testing.assert_close(logits[:, -1], model.final_touch_set(rollout.points)[:, -1])
+    assert not torch.allclose(logits[:, -1], shared[:, -1])
+    terms["loss"].backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in model.final_touch_set.parameters())
+
+
 @pytest.mark.parametrize("policy", ["random", "line_scan"])
 def test_ablation_policies(data, policy):
     model = make_model(data, policy=policy)

@@ -124,7 +124,7 @@ class HapticGlance(pl.LightningModule):
                  touch_set: bool = False, touch_set_net: Literal["small", "wide"] = "small",
                  touch_set_prefix: bool = False, policy_reads_touch_set: bool = False,
                  policy_warmup_steps: int = 0, std_final_scale: float = 1.0, lr_final_scale: float = 1.0,
-                 ce_prefixes: Literal["all", "last"] = "all") -> None:
+                 ce_prefixes: Literal["all", "last"] = "all", final_touch_set: bool = False) -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -172,6 +172,10 @@ class HapticGlance(pl.LightningModule):
         if touch_set_net not in touch_nets:
             raise ValueError(f"model.touch_set_net={touch_set_net!r}: expected one of {sorted(touch_nets)}")
         self.touch_set = touch_nets[touch_set_net]() if touch_set else None
+        # beyond the paper: the answer after the last probe comes from a wide touch set of its own, which the
+        # cross-entropy trains on whole episodes only; one classifier scoring every prefix reads a reordered scan's
+        # full set of probes worse (model.ce_prefixes: last, docs/training.md)
+        self.final_touch_set = TouchSetClassifier.wide(n_classes) if final_touch_set else None
         if policy_reads_touch_set and not touch_set:
             raise ValueError("model.policy_reads_touch_set=true needs model.touch_set=true (the policy reads its "
                              "pooled features)")
@@ -452,6 +456,9 @@ class HapticGlance(pl.LightningModule):
             pooled = self.touch_set.pooled(rollout.points)
             read = self.touch_set.read(pooled)
             logits = read if logits is None else logits + read
+        if self.final_touch_set is not None:  # replaces the prediction after the last probe
+            final = self.final_touch_set.read(self.final_touch_set.pooled(rollout.points, last_only=True))
+            logits = torch.cat([logits[:, :-1], final], 1)
         log_pi = baseline = None
         if self.hparams.policy == "learned" and learn_policy:
             # s_k from which request k was drawn; beyond the paper, the policy may read it without training the encoder
