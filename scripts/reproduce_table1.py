@@ -92,9 +92,9 @@ ROWS = {
     "centre_scan_touchset_wide_last_lr_decay": Row("centre-out scan + PCRN-FC + wide touch set scored after the 10th "
                                                    "probe only, learning rate falling to 5% (beyond the paper)",
                                                    learned=False),
-    "follow2_scan_touchset_wide_last_lr_decay": Row("centre-out scan following its first touch for 2 probes + PCRN-FC + "
-                                                    "wide touch set scored after the 10th probe only, learning rate "
-                                                    "falling to 5% (beyond the paper)", learned=False),
+    "follow2_scan_touchset_wide_last_lr_decay": Row("centre-out scan following its first touch for 2 probes + "
+                                                    "PCRN-FC + wide touch set scored after the 10th probe only, "
+                                                    "learning rate falling to 5% (beyond the paper)", learned=False),
     "follow2_scan_touchset_wide_final_lr_decay": Row("centre-out scan following its first touch for 2 probes + PCRN-FC "
                                                      "+ wide touch set, a touch set of its own after the 10th probe, "
                                                      "learning rate falling to 5% (beyond the paper)", learned=False),
@@ -142,6 +142,10 @@ ROWS = {
         "PCRN-FC+ from the centre-out scan following its first touch for 2 probes + wide touch set, std shrinking to "
         "a tenth, 16000 steps with the policy from step 8000, policy starting exactly on the scan and held near it, "
         "learning rate falling to 5% (beyond the paper)"),
+    "pcrn_fc_follow2_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final": Row(
+        "PCRN-FC+ from the centre-out scan following its first touch for 2 probes + wide touch set, std shrinking to "
+        "a tenth, 16000 steps with the policy from step 8000, policy starting exactly on the scan and held near it, "
+        "learning rate falling to 5%, a touch set of its own after the 10th probe (beyond the paper)"),
     "pcrn_fc_coarse_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay": Row(
         "PCRN-FC+ from the coarse-first scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
         "from step 8000, policy starting exactly on the scan and held near it, learning rate falling to 5% (beyond "
