@@ -98,6 +98,9 @@ ROWS = {
     "follow2_scan_touchset_wide_final_lr_decay": Row("centre-out scan following its first touch for 2 probes + PCRN-FC "
                                                      "+ wide touch set, a touch set of its own after the 10th probe, "
                                                      "learning rate falling to 5% (beyond the paper)", learned=False),
+    "coarse_scan_touchset_wide_final_lr_decay": Row("coarse-first scan + PCRN-FC + wide touch set, a touch set of its own after the "
+                                                    "10th probe, learning rate falling to 5% (beyond the paper)",
+                                                    learned=False),
     "centre_scan_touchset_wide_ema": Row("centre-out scan + PCRN-FC + wide touch set, moving average of the weights "
                                          "(beyond the paper)", learned=False),
     "pcrn_fc_centre_touchset_warmup_wide": Row("PCRN-FC+ from the centre-out scan + wide touch set, policy from step "
