@@ -101,6 +101,9 @@ ROWS = {
     "coarse_scan_touchset_wide_final_lr_decay": Row("coarse-first scan + PCRN-FC + wide touch set, a touch set of its own after the "
                                                     "10th probe, learning rate falling to 5% (beyond the paper)",
                                                     learned=False),
+    "coarse_follow2_scan_touchset_wide_final_lr_decay": Row(
+        "coarse-first scan following its first touch for 2 probes + PCRN-FC + wide touch set, a touch set of its own "
+        "after the 10th probe, learning rate falling to 5% (beyond the paper)", learned=False),
     "centre_scan_touchset_wide_ema": Row("centre-out scan + PCRN-FC + wide touch set, moving average of the weights "
                                          "(beyond the paper)", learned=False),
     "pcrn_fc_centre_touchset_warmup_wide": Row("PCRN-FC+ from the centre-out scan + wide touch set, policy from step "
@@ -149,6 +152,11 @@ ROWS = {
         "PCRN-FC+ from the centre-out scan following its first touch for 2 probes + wide touch set, std shrinking to "
         "a tenth, 16000 steps with the policy from step 8000, policy starting exactly on the scan and held near it, "
         "learning rate falling to 5%, a touch set of its own after the 10th probe (beyond the paper)"),
+    "pcrn_fc_follow2_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final_ema": Row(
+        "PCRN-FC+ from the centre-out scan following its first touch for 2 probes + wide touch set, std shrinking to "
+        "a tenth, 16000 steps with the policy from step 8000, policy starting exactly on the scan and held near it, "
+        "learning rate falling to 5%, a touch set of its own after the 10th probe, moving average of the weights "
+        "(beyond the paper)"),
     "pcrn_fc_coarse_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay": Row(
         "PCRN-FC+ from the coarse-first scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
         "from step 8000, policy starting exactly on the scan and held near it, learning rate falling to 5% (beyond "
