@@ -226,6 +226,14 @@ def noise_plot(summary: dict) -> bytes:
     return buffer.getvalue()
 
 
+def seeds_cell(entry: dict) -> str:
+    """The seeds behind a row: one list when every rate has the same ones, else the list of each rate, so that a
+    rate with fewer runs is not hidden behind the first rate's."""
+    if all(seeds == entry["seeds"][0] for seeds in entry["seeds"]):
+        return str(entry["seeds"][0])
+    return "; ".join(f"{100 * rate:.0f} %: {seeds}" for rate, seeds in zip(entry["rates"], entry["seeds"]))
+
+
 def noise_markdown(summary: dict, merged_at: str) -> str:
     rates = sorted({r for s in summary.values() for r in s["rates"]})
     lines = ["# Accuracy under noise: PointNet and DGCNN on 10 noisy points, our model after 10 noisy probes", "",
@@ -247,7 +255,7 @@ def noise_markdown(summary: dict, merged_at: str) -> str:
         cells = [f"{entry['accuracy'][entry['rates'].index(r)]:.3f} +- {entry['std'][entry['rates'].index(r)]:.3f}"
                  if r in entry["rates"] else "" for r in rates]
         lines.append(f"| {entry['label']} | " + " | ".join(cells) +
-                     f" | {entry['seeds'][0]} | {', '.join(f'`{c}`' for c in entry['commits'])} | "
+                     f" | {seeds_cell(entry)} | {', '.join(f'`{c}`' for c in entry['commits'])} | "
                      f"{'; '.join(entry['hardware'])} |")
     lines += ["", "![accuracy vs noise](noise.png)", ""]
     return "\n".join(lines)

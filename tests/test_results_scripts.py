@@ -132,7 +132,8 @@ def test_table_row_trains_once_is_reused_and_feeds_the_noise_study(tmp_path):
     assert saved["datamodule_hyper_parameters"]["noise"]["miss_prob"] == 0.5  # it trained with the noise on
     merged = json.loads(trained.stdout.strip().splitlines()[-1])
     assert len(merged["ours_trained-pcrn_fc"]) == 2 and merged["ours"][0] == record["accuracy"][-1]
-    assert "Ours trained at the rate" in (tmp_path / "noise.md").read_text()
+    noise_md = (tmp_path / "noise.md").read_text()
+    assert "Ours trained at the rate" in noise_md and "| [0] |" in noise_md  # every rate of it has seed 0 only
     missing = run("reproduce_noise", "--models", "ours_trained", "--rates", "0", "--seeds", "1", "--out", str(tmp_path))
     assert missing.returncode != 0 and "pcrn_fc-seed1.json: no table run" in missing.stderr
     # where the checkpoint's policy probes, beside the fixed scans, on the same episodes
@@ -241,3 +242,9 @@ def test_coverage_measures_how_far_a_learned_policy_moved_from_its_prior():
     assert shift["py"] > 0.05 and shift["ux"] == shift["uy"] == shift["uz"] == 0
     assert coverage.policy_probes(HapticGlance(policy="line_scan"), sim, labels, poses)[3] is None  # no prior
     sim.close()
+
+
+def test_noise_table_names_each_rates_seeds_when_they_differ():
+    noise = script("reproduce_noise")
+    assert noise.seeds_cell({"rates": [0.0, 0.1], "seeds": [[0, 1], [0, 1]]}) == "[0, 1]"
+    assert noise.seeds_cell({"rates": [0.0, 0.1], "seeds": [[0], [0, 1, 2]]}) == "0 %: [0]; 10 %: [0, 1, 2]"
