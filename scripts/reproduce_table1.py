@@ -157,6 +157,10 @@ ROWS = {
         "a tenth, 16000 steps with the policy from step 8000, policy starting exactly on the scan and held near it, "
         "learning rate falling to 5%, a touch set of its own after the 10th probe, moving average of the weights "
         "(beyond the paper)"),
+    "pcrn_fc_coarse_follow2_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final": Row(
+        "PCRN-FC+ from the coarse-first scan following its first touch for 2 probes + wide touch set, std shrinking "
+        "to a tenth, 16000 steps with the policy from step 8000, policy starting exactly on the scan and held near "
+        "it, learning rate falling to 5%, a touch set of its own after the 10th probe (beyond the paper)"),
     "pcrn_fc_coarse_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay": Row(
         "PCRN-FC+ from the coarse-first scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
         "from step 8000, policy starting exactly on the scan and held near it, learning rate falling to 5% (beyond "
