@@ -14,9 +14,13 @@ object lies off the probe line. Seconds on one core.
 
 With `--fit EPISODES`, also how much a fixed scan's probes can say about the class: a PointNet (hg/nets, with
 BatchNorm and dropout; or `--fit-net touch_set`, the model's touch-set classifier) trained supervised on the
-scan's probes in EPISODES training-split episodes, each probe as (X, Y, Z relative to the mean of the touched
+scan's probes in EPISODES episodes of the training split (`--fit-split`), each probe as (X, Y, Z relative to the mean of the touched
 points, T), and scored after its last epoch on the episodes above. It does not depend on the policy being
 learned or on the classifier keeping up with it, so it tells whether a target is out of reach of a kind of scan. Minutes per scan for 16384 episodes.
+`--fit-net knn` trains nothing: each episode takes the vote of its `--fit-k` nearest fit episodes, probe by probe
+where they are. With the fit episodes drawn from the scored split (`--fit-split val`) and a million or more of them
+it approaches the best any classifier of the scan's probes can do (a ceiling to read a trained classifier against,
+not a classifier: it has seen the held-out poses).
 
 With `--aims`, also the scan aimed by an oracle that reads the object's pose: every probe leans across the line
 towards the object's centre, by a fixed lean (a number, in request units as `model.scan_lean`) or by exactly the
@@ -38,6 +42,7 @@ probe that touched leans to), so no split's base rates enter it.
     .venv/bin/python scripts/scan_coverage.py --ckpt runs/table1/pcrn_fc_plus-seed0/checkpoints/best-step7500.ckpt
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --fit 16384 --episodes 4096   # what the scan can say
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --aims 0 0.6 exact --fit 16384   # ... aimed by an oracle
+    .venv/bin/python scripts/scan_coverage.py --spans 0.5 --fit 1048576 --fit-net knn --fit-split val  # ... at best
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --sides 0.6 --side-firsts 1 --aims 0 side   # ... its side
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --sides 0.6 --fit 16384 --fit-target side --fit-probes 4
 
@@ -166,20 +171,51 @@ def fit_labels(target: str, labels: np.ndarray, poses: np.ndarray, scene) -> np.
     return labels if target == "class" else (poses[:, 0] > scene.probe_x).astype(np.int64)
 
 
+def knn_predict(library: torch.Tensor, library_labels: torch.Tensor, queries: torch.Tensor, k: int,
+                n_classes: int, chunk: int = 65536) -> torch.Tensor:
+    """(Q,) class of each query episode (Q, N, 4 probes) by a vote of its k nearest library episodes (L, N, 4), the
+    probes compared in order and where they are (X, Y, Z x 5, and T). No training and no translation invariance:
+    with a library drawn from the same poses as the queries, and as it grows, this approaches the best any
+    classifier of these probes can do, so it separates what a scan cannot tell from what a classifier misses. Ties
+    go to the class of the nearer neighbours."""
+    if not 1 <= k <= len(library):
+        raise ValueError(f"--fit-k {k}: must be in [1, {len(library)}] (the fit episodes)")
+
+    def features(points: torch.Tensor) -> torch.Tensor:
+        return torch.cat([points[..., :3] * 5.0, points[..., 3:]], -1).flatten(1)
+
+    queries, best_d = features(queries), torch.full((len(queries), k), float("inf"))
+    best_i = torch.zeros((len(queries), k), dtype=torch.long)
+    for start in range(0, len(library), chunk):  # the running k nearest: the whole distance matrix would not fit
+        d = torch.cdist(queries, features(library[start:start + chunk]))
+        index = torch.arange(start, start + d.shape[1]).expand(len(queries), -1)
+        best_d, order = torch.cat([best_d, d], 1).topk(k, largest=False)
+        best_i = torch.cat([best_i, index], 1).gather(1, order)
+    nearness = 1.0 + torch.linspace(1, 0, k) / (2 * k)  # nearest first; all of it adds < 1: it only breaks ties
+    votes = torch.zeros(len(queries), n_classes).scatter_add_(1, library_labels[best_i], nearness.expand_as(best_d))
+    return votes.argmax(1)
+
+
 def fit_accuracy(model: HapticGlance, sim: ProbeSimulator, regions: PoseRegions, n_train: int, val_points: torch.Tensor,
                  val_labels: np.ndarray, epochs: int, seed: int, kind: str = "pointnet", target: str = "class",
-                 probes: int | None = None, val_mask: np.ndarray | None = None) -> float:
-    """Validation accuracy (over val_mask, default all) of a classifier (FitNet) trained supervised on the first
-    `probes` (default all) of the fixed scan's probes in n_train training-split episodes (rolled out in batches
-    of the simulator's size): what this scan's probes can say about the class, or the side (target)."""
+                 probes: int | None = None, val_mask: np.ndarray | None = None, split: str = "train",
+                 k: int = 8) -> float:
+    """Validation accuracy (over val_mask, default all) of a classifier (FitNet, or knn_predict with k neighbours)
+    trained supervised on the first `probes` (default all) of the fixed scan's probes in n_train episodes of the
+    split (rolled out in batches of the simulator's size): what this scan's probes can say about the class, or the
+    side (target)."""
     rng, batches = np.random.default_rng(seed + 1), []
     for i in range(max(1, n_train // sim.batch_size)):
-        labels, poses = sample_episodes(regions, "train", sim.batch_size, len(sim.classes), rng)
+        labels, poses = sample_episodes(regions, split, sim.batch_size, len(sim.classes), rng)
         batches.append((policy_probes(model, sim, labels, poses, seed=seed + 1 + i)[0][:, :probes],
                         torch.from_numpy(fit_labels(target, labels, poses, sim.scene))))
     points, labels = torch.cat([b[0] for b in batches]), torch.cat([b[1] for b in batches])
+    n_out = len(sim.classes) if target == "class" else 2
+    if kind == "knn":
+        right = knn_predict(points, labels, val_points[:, :probes], k, n_out).numpy() == val_labels
+        return float(right[val_mask].mean() if val_mask is not None else right.mean())
     torch.manual_seed(seed)
-    net = FitNet(kind, len(sim.classes) if target == "class" else 2, centred=target == "class")
+    net = FitNet(kind, n_out, centred=target == "class")
     optimiser = torch.optim.Adam(net.parameters(), lr=1e-3)
     for _ in range(epochs):
         net.train()
@@ -289,18 +325,24 @@ def main() -> None:
     parser.add_argument("--ckpt", type=Path, nargs="*", default=[], help="checkpoints whose policies to measure too")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--fit", type=int, default=0, metavar="EPISODES",
-                        help="also train a PointNet on each fixed scan's probes in this many training episodes")
+                        help="also train a PointNet on each fixed scan's probes in this many episodes of --fit-split")
     parser.add_argument("--fit-epochs", type=int, default=25)
-    parser.add_argument("--fit-net", choices=["pointnet", "touch_set"], default="pointnet",
-                        help="the classifier --fit trains: a PointNet, or the model's touch-set classifier")
+    parser.add_argument("--fit-net", choices=["pointnet", "touch_set", "knn"], default="pointnet",
+                        help="the classifier --fit trains: a PointNet, the model's touch-set classifier, or the "
+                             "k nearest fit episodes (--fit-k; with --fit-split as --split, near the best possible)")
+    parser.add_argument("--fit-k", type=int, default=16, help="neighbours that vote with --fit-net knn")
+    parser.add_argument("--fit-split", choices=["train", "val", "test"], default="train",
+                        help="the pose split --fit draws its episodes from")
     parser.add_argument("--fit-target", choices=["class", "side"], default="class",
                         help="what --fit learns: the class, or the side of the line the object lies on (scored on "
                              "the episodes whose object lies at least 5 cm off the line, where the side matters)")
     parser.add_argument("--fit-probes", type=int, default=None, metavar="K",
                         help="--fit reads only each episode's first K probes (default: all)")
     args = parser.parse_args()
-    if args.fit_target == "side" and args.fit_net != "pointnet":
-        parser.error("--fit-target side: needs --fit-net pointnet")
+    if args.fit_target == "side" and args.fit_net == "touch_set":
+        parser.error("--fit-target side: needs --fit-net pointnet or knn")
+    if args.fit_net == "knn" and not 1 <= args.fit_k <= args.fit:
+        parser.error(f"--fit-k {args.fit_k}: must be in [1, --fit {args.fit}] (the episodes that vote)")
     if args.fit_probes is not None and not 1 <= args.fit_probes <= args.n_probes:
         parser.error(f"--fit-probes {args.fit_probes}: must be in [1, --n-probes {args.n_probes}]")
     for aim in args.aims:
@@ -356,7 +398,8 @@ def main() -> None:
             r[key] = round(fit_accuracy(model, sim, regions, args.fit, points,
                                         fit_labels(args.fit_target, labels, poses, sim.scene), args.fit_epochs,
                                         args.seed, args.fit_net, args.fit_target, args.fit_probes,
-                                        None if args.fit_target == "class" else far), 3)
+                                        None if args.fit_target == "class" else far, args.fit_split,
+                                        args.fit_k), 3)
         towards = "-" if r["towards_object"] is None else f"{r['towards_object']:.2f}"
         print(f"{r['touches']:8.2f} {r['touches_first_half']:9.2f} {r['any_touch']:10.2f} {r['tilt_deg']:11.1f}"
               f" {towards:>8}"

@@ -248,3 +248,25 @@ def test_noise_table_names_each_rates_seeds_when_they_differ():
     noise = script("reproduce_noise")
     assert noise.seeds_cell({"rates": [0.0, 0.1], "seeds": [[0, 1], [0, 1]]}) == "[0, 1]"
     assert noise.seeds_cell({"rates": [0.0, 0.1], "seeds": [[0], [0, 1, 2]]}) == "0 %: [0]; 10 %: [0, 1, 2]"
+
+
+def test_knn_ceiling_votes_the_nearest_episodes_and_runs_on_the_scored_split():
+    coverage = script("scan_coverage")
+    generator = torch.Generator().manual_seed(0)
+    library = torch.rand(400, 3, 4, generator=generator)
+    labels = (library[:, 0, 2] > 0.5).long()  # the class is the first probe's depth
+    queries = torch.rand(200, 3, 4, generator=generator)
+    right = coverage.knn_predict(library, labels, queries, k=5, n_classes=2) == (queries[:, 0, 2] > 0.5).long()
+    assert right.float().mean() > 0.6  # better than chance although 11 of 12 features are noise
+    assert (coverage.knn_predict(library, labels, library, k=1, n_classes=2, chunk=64) == labels).all()  # itself
+    near, far = torch.zeros(1, 2, 4), torch.full((1, 2, 4), 0.2)
+    tie = coverage.knn_predict(torch.cat([far, near]), torch.tensor([0, 1]), torch.zeros(1, 2, 4), 2, 2)
+    assert tie.tolist() == [1]  # one vote each: the nearer neighbour's class
+    with pytest.raises(ValueError, match="--fit-k 3: must be in"):
+        coverage.knn_predict(library[:2], labels[:2], queries, k=3, n_classes=2)
+    knn = run("scan_coverage", "--episodes", "64", "--orders", "centre_out", "--spans", "0.5", "--fit", "256",
+              "--fit-net", "knn", "--fit-split", "val", "--fit-k", "4")
+    assert knn.returncode == 0, knn.stderr[-2000:]
+    assert 0.25 < json.loads(knn.stdout.strip().splitlines()[-1])["centre_out-span0.5"]["fit_accuracy"] <= 1
+    bad = run("scan_coverage", "--fit", "8", "--fit-net", "knn", "--fit-k", "9")
+    assert bad.returncode != 0 and "--fit-k 9: must be in [1, --fit 8]" in bad.stderr
