@@ -14,9 +14,10 @@ object lies off the probe line. Seconds on one core.
 
 With `--fit EPISODES`, also how much a fixed scan's probes can say about the class: a PointNet (hg/nets, with
 BatchNorm and dropout; or `--fit-net touch_set`, the model's touch-set classifier) trained supervised on the
-scan's probes in EPISODES episodes of the training split (`--fit-split`), each probe as (X, Y, Z relative to the mean of the touched
-points, T), and scored after its last epoch on the episodes above. It does not depend on the policy being
-learned or on the classifier keeping up with it, so it tells whether a target is out of reach of a kind of scan. Minutes per scan for 16384 episodes.
+scan's probes in EPISODES episodes of the training split (`--fit-split`), each probe as (X, Y, Z relative to the
+mean of the touched points, T), and scored after its last epoch on the episodes above. It does not depend on the
+policy being learned or on the classifier keeping up with it, so it tells whether a target is out of reach of a
+kind of scan. Minutes per scan for 16384 episodes.
 `--fit-net knn` trains nothing: each episode takes the vote of its `--fit-k` nearest fit episodes, probe by probe
 where they are. With the fit episodes drawn from the scored split (`--fit-split val`) and a million or more of them
 it approaches the best any classifier of the scan's probes can do (a ceiling to read a trained classifier against,
@@ -371,7 +372,8 @@ def main() -> None:
         models[repo_path(path)] = HapticGlance.load_from_checkpoint(path, map_location="cpu").eval()
     sim = ProbeSimulator("hg4", batch_size=args.episodes, mode=args.mode, seed=args.seed)
     regions = PoseRegions(sim.scene)
-    labels, poses = sample_episodes(regions, args.split, args.episodes, len(sim.classes), np.random.default_rng(args.seed))
+    labels, poses = sample_episodes(regions, args.split, args.episodes, len(sim.classes),
+                                    np.random.default_rng(args.seed))
     half = args.n_probes // 2
     offsets = poses[:, 0] - sim.scene.probe_x
     far = np.abs(offsets) >= SIDE_MIN_OFFSET
@@ -419,8 +421,8 @@ def main() -> None:
     for name, r in results.items():
         if "first_touch_side" in r:
             side = r["first_touch_side"]
-            print(f"{name}: in {side['share']:.3f} of the episodes {100 * SIDE_MIN_OFFSET:g}+ cm off the line a leaning "
-                  f"probe touched, and the first such probe's lean names their side "
+            print(f"{name}: in {side['share']:.3f} of the episodes {100 * SIDE_MIN_OFFSET:g}+ cm off the line a "
+                  "leaning probe touched, and the first such probe's lean names their side "
                   + ("-" if side["accuracy"] is None else f"{side['accuracy']:.3f}") + " of the time")
     sim.close()
     print(json.dumps(results))
