@@ -67,6 +67,9 @@ ROWS = {
     "centre_scan_touchset_wide": Row("centre-out scan + PCRN-FC + wide touch set (beyond the paper)", learned=False),
     "side_scan_touchset_wide": Row("side-picking scan (steep first pair) + PCRN-FC + wide touch set (beyond the "
                                    "paper)", learned=False),
+    "side_scan_touchset_wide_long_lr_decay": Row("side-picking scan (steep first pair) + PCRN-FC + wide touch set, "
+                                                 "16000 steps, learning rate falling to 5% (beyond the paper)",
+                                                 learned=False),
     "centre_scan_touchset_wide_long": Row("centre-out scan + PCRN-FC + wide touch set, 16000 steps (beyond the "
                                           "paper)", learned=False),
     "centre_scan_touchset_wide_lr_decay": Row("centre-out scan + PCRN-FC + wide touch set, learning rate falling to "
