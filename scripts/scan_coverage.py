@@ -200,7 +200,7 @@ def knn_predict(library: torch.Tensor, library_labels: torch.Tensor, queries: to
 def fit_accuracy(model: HapticGlance, sim: ProbeSimulator, regions: PoseRegions, n_train: int, val_points: torch.Tensor,
                  val_labels: np.ndarray, epochs: int, seed: int, kind: str = "pointnet", target: str = "class",
                  probes: int | None = None, val_mask: np.ndarray | None = None, split: str = "train",
-                 k: int = 8) -> float:
+                 k: int = 16) -> float:
     """Validation accuracy (over val_mask, default all) of a classifier (FitNet, or knn_predict with k neighbours)
     trained supervised on the first `probes` (default all) of the fixed scan's probes in n_train episodes of the
     split (rolled out in batches of the simulator's size): what this scan's probes can say about the class, or the
@@ -213,10 +213,21 @@ def fit_accuracy(model: HapticGlance, sim: ProbeSimulator, regions: PoseRegions,
     points, labels = torch.cat([b[0] for b in batches]), torch.cat([b[1] for b in batches])
     n_out = len(sim.classes) if target == "class" else 2
     if kind == "knn":
-        right = knn_predict(points, labels, val_points[:, :probes], k, n_out).numpy() == val_labels
-        return float(right[val_mask].mean() if val_mask is not None else right.mean())
+        predicted = knn_predict(points, labels, val_points[:, :probes], k, n_out)
+    else:
+        net = train_fit_net(kind, n_out, target == "class", points, labels, epochs, seed)
+        with torch.no_grad():
+            predicted = net(val_points[:, :probes]).argmax(-1)
+    right = predicted.numpy() == val_labels
+    return float(right[val_mask].mean() if val_mask is not None else right.mean())
+
+
+def train_fit_net(kind: str, n_out: int, centred: bool, points: torch.Tensor, labels: torch.Tensor, epochs: int,
+                  seed: int) -> FitNet:
+    """A FitNet seeded, built and trained with Adam on (points, labels) for `epochs` passes of batches of 256,
+    returned in eval mode."""
     torch.manual_seed(seed)
-    net = FitNet(kind, n_out, centred=target == "class")
+    net = FitNet(kind, n_out, centred=centred)
     optimiser = torch.optim.Adam(net.parameters(), lr=1e-3)
     for _ in range(epochs):
         net.train()
@@ -225,10 +236,7 @@ def fit_accuracy(model: HapticGlance, sim: ProbeSimulator, regions: PoseRegions,
             optimiser.zero_grad()
             loss.backward()
             optimiser.step()
-    net.eval()
-    with torch.no_grad():
-        right = net(val_points[:, :probes]).argmax(-1).numpy() == val_labels
-    return float(right[val_mask].mean() if val_mask is not None else right.mean())
+    return net.eval()
 
 
 def accuracy_by_touches(touches: np.ndarray, correct: np.ndarray, offsets: np.ndarray) -> dict:
@@ -326,7 +334,8 @@ def main() -> None:
     parser.add_argument("--ckpt", type=Path, nargs="*", default=[], help="checkpoints whose policies to measure too")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--fit", type=int, default=0, metavar="EPISODES",
-                        help="also train a PointNet on each fixed scan's probes in this many episodes of --fit-split")
+                        help="also fit a classifier (--fit-net) to each fixed scan's probes in this many episodes "
+                             "of --fit-split")
     parser.add_argument("--fit-epochs", type=int, default=25)
     parser.add_argument("--fit-net", choices=["pointnet", "touch_set", "knn"], default="pointnet",
                         help="the classifier --fit trains: a PointNet, the model's touch-set classifier, or the "
