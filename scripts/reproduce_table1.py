@@ -70,6 +70,9 @@ ROWS = {
     "side_scan_touchset_wide_long_lr_decay": Row("side-picking scan (steep first pair) + PCRN-FC + wide touch set, "
                                                  "16000 steps, learning rate falling to 5% (beyond the paper)",
                                                  learned=False),
+    "side_scan_touchset_wide_final_long_lr_decay": Row(
+        "side-picking scan (steep first pair) + PCRN-FC + wide touch set, a touch set of its own after the 10th probe, "
+        "16000 steps, learning rate falling to 5% (beyond the paper)", learned=False),
     "centre_scan_touchset_wide_long": Row("centre-out scan + PCRN-FC + wide touch set, 16000 steps (beyond the "
                                           "paper)", learned=False),
     "centre_scan_touchset_wide_lr_decay": Row("centre-out scan + PCRN-FC + wide touch set, learning rate falling to "
@@ -164,6 +167,10 @@ ROWS = {
         "PCRN-FC+ from the coarse-first scan following its first touch for 2 probes + wide touch set, std shrinking "
         "to a tenth, 16000 steps with the policy from step 8000, policy starting exactly on the scan and held near "
         "it, learning rate falling to 5%, a touch set of its own after the 10th probe (beyond the paper)"),
+    "pcrn_fc_side_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final": Row(
+        "PCRN-FC+ from the side-picking scan (steep first pair) + wide touch set, std shrinking to a tenth, 16000 steps "
+        "with the policy from step 8000, policy starting exactly on the scan and held near it, learning rate falling "
+        "to 5%, a touch set of its own after the 10th probe (beyond the paper)"),
     "pcrn_fc_coarse_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay": Row(
         "PCRN-FC+ from the coarse-first scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
         "from step 8000, policy starting exactly on the scan and held near it, learning rate falling to 5% (beyond "
