@@ -13,7 +13,7 @@ split by how many probes touched (a classifier can only be as good as what it to
 object lies off the probe line. Seconds on one core.
 
 With `--fit EPISODES`, also how much a fixed scan's probes can say about the class: a PointNet (hg/nets, with
-BatchNorm and dropout; or `--fit-net touch_set`, the model's touch-set classifier) trained supervised on the
+BatchNorm and dropout; or `--fit-net touch_set*`, one of the model's touch-set classifiers) trained supervised on the
 scan's probes in EPISODES episodes of the training split (`--fit-split`), each probe as (X, Y, Z relative to the
 mean of the touched points, T), and scored after its last epoch on the episodes above. It does not depend on the
 policy being learned or on the classifier keeping up with it, so it tells whether a target is out of reach of a
@@ -150,6 +150,12 @@ def touch_frame(points: torch.Tensor, scale: float = 5.0, centred: bool = True) 
     return torch.cat([(points[..., :3] - centre * centred) * scale, touched], -1)
 
 
+# what --fit-net trains; the touch sets as the model builds them (model.touch_set_net, model.touch_set_miss_frame)
+FIT_NETS = {"pointnet": lambda n: PointNet(n, in_dim=4), "touch_set": TouchSetClassifier,
+            "touch_set_wide": TouchSetClassifier.wide,
+            "touch_set_wide_line": lambda n: TouchSetClassifier.wide(n, miss_frame="line")}
+
+
 class FitNet(torch.nn.Module):
     """The classifier `--fit` trains on the probes of an episode: a PointNet on touch_frame(points), or the model's
     own touch-set classifier (model.touch_set; its logits after the last probe), to compare them on the same
@@ -159,7 +165,7 @@ class FitNet(torch.nn.Module):
     def __init__(self, kind: str, n_classes: int, centred: bool = True) -> None:
         super().__init__()
         self.kind, self.centred = kind, centred
-        self.net = PointNet(n_classes, in_dim=4) if kind == "pointnet" else TouchSetClassifier(n_classes)
+        self.net = FIT_NETS[kind](n_classes)
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         if self.kind != "pointnet":
@@ -337,9 +343,10 @@ def main() -> None:
                         help="also fit a classifier (--fit-net) to each fixed scan's probes in this many episodes "
                              "of --fit-split")
     parser.add_argument("--fit-epochs", type=int, default=25)
-    parser.add_argument("--fit-net", choices=["pointnet", "touch_set", "knn"], default="pointnet",
-                        help="the classifier --fit trains: a PointNet, the model's touch-set classifier, or the "
-                             "k nearest fit episodes (--fit-k; with --fit-split as --split, near the best possible)")
+    parser.add_argument("--fit-net", choices=[*FIT_NETS, "knn"], default="pointnet",
+                        help="the classifier --fit trains: a PointNet, one of the model's touch-set classifiers "
+                             "(small, wide, wide with its misses in the line's frame), or the k nearest fit episodes "
+                             "(--fit-k; with --fit-split as --split, near the best possible)")
     parser.add_argument("--fit-k", type=int, default=16, help="neighbours that vote with --fit-net knn")
     parser.add_argument("--fit-split", choices=["train", "val", "test"], default="train",
                         help="the pose split --fit draws its episodes from")
@@ -349,7 +356,7 @@ def main() -> None:
     parser.add_argument("--fit-probes", type=int, default=None, metavar="K",
                         help="--fit reads only each episode's first K probes (default: all)")
     args = parser.parse_args()
-    if args.fit_target == "side" and args.fit_net == "touch_set":
+    if args.fit_target == "side" and args.fit_net.startswith("touch_set"):
         parser.error("--fit-target side: needs --fit-net pointnet or knn")
     if args.fit_net == "knn" and not 1 <= args.fit_k <= args.fit:
         parser.error(f"--fit-k {args.fit_k}: must be in [1, --fit {args.fit}] (the episodes that vote)")

@@ -280,6 +280,16 @@ def test_final_touch_set_answers_after_the_last_probe_only(data):
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in model.final_touch_set.parameters())
 
 
+def test_touch_set_miss_frame_reaches_both_wide_touch_sets_and_needs_one():
+    model = HapticGlance(policy="line_scan", touch_set=True, touch_set_net="wide", final_touch_set=True,
+                         touch_set_miss_frame="line")
+    assert model.touch_set.miss_frame == model.final_touch_set.miss_frame == "line"
+    with pytest.raises(ValueError, match="touch_set_miss_frame='line': places the misses of a wide touch set"):
+        HapticGlance(policy="line_scan", touch_set=True, touch_set_miss_frame="line")
+    with pytest.raises(ValueError, match="model.touch_set_miss_frame='ray'"):
+        HapticGlance(policy="line_scan", final_touch_set=True, touch_set_miss_frame="ray")
+
+
 @pytest.mark.parametrize("policy", ["random", "line_scan"])
 def test_ablation_policies(data, policy):
     model = make_model(data, policy=policy)

@@ -201,6 +201,32 @@ def test_wide_touch_set_reads_where_probes_missed() -> None:
     assert differs.tolist() == [k >= 2 for k in range(6)]
 
 
+@pytest.mark.parametrize("miss_frame", ["touches", "line"])
+def test_wide_touch_set_miss_frame_decides_whether_misses_say_where_the_object_lies(miss_frame) -> None:
+    """The touches moved across the line and in depth, the misses left where their rays ended: in the touches'
+    frame the misses then sit elsewhere relative to the object, in the line's frame only their Y is relative, so
+    the answer changes in the first and not in the second. Moved along the line, touches and misses alike, it
+    changes in neither."""
+    clf = TouchSetClassifier.wide(4, miss_frame=miss_frame)
+    points = touched_points([True, False, True, True, False, True])
+    touched = points[..., 3:] > 0.5
+    logits = clf(points)
+    across = points.clone()
+    across[..., :3] += torch.tensor([0.3, 0.0, -0.2]) * touched
+    moved_across = not torch.allclose(clf(across), logits, atol=1e-5)
+    assert moved_across == (miss_frame == "touches")
+    along = points.clone()
+    along[..., 1] += 0.4
+    assert torch.allclose(clf(along), logits, atol=1e-5)
+
+
+def test_touch_set_miss_frame_is_checked() -> None:
+    with pytest.raises(ValueError, match="miss_frame='side'"):
+        TouchSetClassifier.wide(4, miss_frame="side")
+    with pytest.raises(ValueError, match="needs misses=True"):
+        TouchSetClassifier(4, miss_frame="line")
+
+
 def test_touch_set_with_prefixes_tells_a_sparse_prefix_from_a_full_one() -> None:
     """The same touched points and share of touches, read after 2 probes and after 4: alike without the prefix
     input, told apart with it."""

@@ -124,7 +124,8 @@ class HapticGlance(pl.LightningModule):
                  touch_set: bool = False, touch_set_net: Literal["small", "wide"] = "small",
                  touch_set_prefix: bool = False, policy_reads_touch_set: bool = False,
                  policy_warmup_steps: int = 0, std_final_scale: float = 1.0, lr_final_scale: float = 1.0,
-                 ce_prefixes: Literal["all", "last"] = "all", final_touch_set: bool = False) -> None:
+                 ce_prefixes: Literal["all", "last"] = "all", final_touch_set: bool = False,
+                 touch_set_miss_frame: Literal["touches", "line"] = "touches") -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -167,15 +168,23 @@ class HapticGlance(pl.LightningModule):
         # beyond the paper: the logits of a translation-invariant classifier of the touched points are added
         # touch_set_prefix: its head also reads which prefix it scores (one-hot)
         n_prefixes = n_probes if touch_set_prefix else 0
+        # touch_set_miss_frame: where the wide nets place a miss (TouchSetClassifier's miss_frame)
         touch_nets = {"small": lambda: TouchSetClassifier(n_classes, hidden=hidden, n_prefixes=n_prefixes),
-                      "wide": lambda: TouchSetClassifier.wide(n_classes, n_prefixes)}  # wide: reads misses, LayerNorm
+                      "wide": lambda: TouchSetClassifier.wide(n_classes, n_prefixes, touch_set_miss_frame)}
         if touch_set_net not in touch_nets:
             raise ValueError(f"model.touch_set_net={touch_set_net!r}: expected one of {sorted(touch_nets)}")
+        if touch_set_miss_frame not in ("touches", "line"):
+            raise ValueError(f"model.touch_set_miss_frame={touch_set_miss_frame!r}: expected 'touches' or 'line'")
+        if touch_set_miss_frame != "touches" and not (touch_set and touch_set_net == "wide" or final_touch_set):
+            raise ValueError(f"model.touch_set_miss_frame={touch_set_miss_frame!r}: places the misses of a wide touch "
+                             "set, so it needs model.touch_set_net: wide (with model.touch_set) or "
+                             "model.final_touch_set")
         self.touch_set = touch_nets[touch_set_net]() if touch_set else None
         # beyond the paper: the answer after the last probe comes from a wide touch set of its own, which the
         # cross-entropy trains on whole episodes only; one classifier scoring every prefix reads a reordered scan's
         # full set of probes worse (model.ce_prefixes: last, docs/training.md)
-        self.final_touch_set = TouchSetClassifier.wide(n_classes) if final_touch_set else None
+        self.final_touch_set = TouchSetClassifier.wide(n_classes, miss_frame=touch_set_miss_frame) \
+            if final_touch_set else None
         if policy_reads_touch_set and not touch_set:
             raise ValueError("model.policy_reads_touch_set=true needs model.touch_set=true (the policy reads its "
                              "pooled features)")

@@ -91,6 +91,10 @@ class TouchSetClassifier(nn.Module):
     variant (`wide()`) pools misses too, 512 features wide, with LayerNorm: on the same fixed-scan probes it
     learns more (`scan_coverage.py --fit-net`).
 
+    With `miss_frame="line"` a miss keeps its X and Z as its ray left them (only its Y is taken relative to the
+    touches): relative to the touches they would say where the object lies across the line and how deep, which the
+    held-out position cells do not share with the training ones; as they are, they say only which way the ray went.
+
     With `n_prefixes` > 0 the head also reads which prefix it scores (one-hot, k < n_prefixes): one set of weights
     then need not read a scan's sparse first probes and its full set of probes alike.
 
@@ -98,8 +102,14 @@ class TouchSetClassifier(nn.Module):
     """
 
     def __init__(self, n_classes: int, shared: tuple[int, ...] = (64, 128, 256), hidden: int = 256,
-                 scale: float = 5.0, misses: bool = False, layer_norm: bool = False, n_prefixes: int = 0) -> None:
+                 scale: float = 5.0, misses: bool = False, layer_norm: bool = False, n_prefixes: int = 0,
+                 miss_frame: str = "touches") -> None:
         super().__init__()
+        if miss_frame not in ("touches", "line"):
+            raise ValueError(f"miss_frame={miss_frame!r}: expected 'touches' or 'line'")
+        if miss_frame == "line" and not misses:
+            raise ValueError("miss_frame='line' places the misses, so it needs misses=True")
+        self.miss_frame = miss_frame
         self.scale = scale  # relative coordinates of a ~0.2 m object (x point_scale) to about unit size
         self.misses = misses
         self.n_prefixes = n_prefixes
@@ -108,8 +118,9 @@ class TouchSetClassifier(nn.Module):
         self.head = mlp([self.pooled_dim + n_prefixes, hidden, n_classes], last_act=False, layer_norm=layer_norm)
 
     @classmethod
-    def wide(cls, n_classes: int, n_prefixes: int = 0) -> "TouchSetClassifier":
-        return cls(n_classes, shared=(64, 128, 512), misses=True, layer_norm=True, n_prefixes=n_prefixes)
+    def wide(cls, n_classes: int, n_prefixes: int = 0, miss_frame: str = "touches") -> "TouchSetClassifier":
+        return cls(n_classes, shared=(64, 128, 512), misses=True, layer_norm=True, n_prefixes=n_prefixes,
+                   miss_frame=miss_frame)
 
     def forward(self, points: Tensor) -> Tensor:
         """points (B, N, 4): X, Y, Z and the contact flag T -> logits (B, N, n_classes)."""
@@ -134,6 +145,9 @@ class TouchSetClassifier(nn.Module):
         else:  # the pairs, prefix by prefix
             k, j = torch.tril_indices(n, n, device=points.device)
         relative = (xyz[:, j] - centre[:, k]) * self.scale  # (B, P, 3)
+        if self.miss_frame == "line":  # a miss's X and Z as its ray left them
+            across = torch.tensor([True, False, True], device=points.device)
+            relative = torch.where(across & (touched[:, j, None] < 0.5), xyz[:, j] * self.scale, relative)
         if self.misses:  # every probe of the prefix is pooled
             features = self.shared(torch.cat([relative, touched[:, j, None]], -1))  # (B, P, F)
         else:  # only the touched ones
