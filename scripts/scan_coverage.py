@@ -153,7 +153,8 @@ def touch_frame(points: torch.Tensor, scale: float = 5.0, centred: bool = True) 
 # what --fit-net trains; the touch sets as the model builds them (model.touch_set_net, model.touch_set_miss_frame)
 FIT_NETS = {"pointnet": lambda n: PointNet(n, in_dim=4), "touch_set": TouchSetClassifier,
             "touch_set_wide": TouchSetClassifier.wide,
-            "touch_set_wide_line": lambda n: TouchSetClassifier.wide(n, miss_frame="line")}
+            "touch_set_wide_line": lambda n: TouchSetClassifier.wide(n, miss_frame="line"),
+            "touch_set_wide_mirror": lambda n: TouchSetClassifier.wide(n, mirror=True)}
 
 
 class FitNet(torch.nn.Module):
@@ -345,8 +346,9 @@ def main() -> None:
     parser.add_argument("--fit-epochs", type=int, default=25)
     parser.add_argument("--fit-net", choices=[*FIT_NETS, "knn"], default="pointnet",
                         help="the classifier --fit trains: a PointNet, one of the model's touch-set classifiers "
-                             "(small, wide, wide with its misses in the line's frame), or the k nearest fit episodes "
-                             "(--fit-k; with --fit-split as --split, near the best possible)")
+                             "(small, wide, wide with its misses in the line's frame, wide mirrored to the line's "
+                             "+x side), or the k nearest fit episodes (--fit-k; with --fit-split as --split, near "
+                             "the best possible)")
     parser.add_argument("--fit-k", type=int, default=16, help="neighbours that vote with --fit-net knn")
     parser.add_argument("--fit-split", choices=["train", "val", "test"], default="train",
                         help="the pose split --fit draws its episodes from")

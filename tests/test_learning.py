@@ -17,6 +17,7 @@ from hg.lightning import HapticGlance, ProbeDataModule, discounted_returns, hybr
 from hg.lightning.callbacks import WeightEMA
 from hg.lightning.module import relative_to_first_touch
 from hg.sim.scene import Scene
+from hg.sim.simulator import ProbeSimulator
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = str(ROOT / "configs" / "tiny.yaml")
@@ -288,6 +289,16 @@ def test_touch_set_miss_frame_reaches_both_wide_touch_sets_and_needs_one():
         HapticGlance(policy="line_scan", touch_set=True, touch_set_miss_frame="line")
     with pytest.raises(ValueError, match="model.touch_set_miss_frame='ray'"):
         HapticGlance(policy="line_scan", final_touch_set=True, touch_set_miss_frame="ray")
+
+
+def test_touch_set_mirror_reaches_both_touch_sets_and_learns_where_the_line_is(data):
+    model = make_model(data, policy="line_scan", touch_set=True, final_touch_set=True, touch_set_mirror=True)
+    assert model.touch_set.mirror and model.final_touch_set.mirror
+    model.sim = ProbeSimulator("hg4", batch_size=2, scene=Scene(probe_x=0.1), mode="ideal")
+    assert model.touch_set.line_x == model.final_touch_set.line_x == pytest.approx(0.1 * model.hparams.point_scale)
+    model.sim.close()
+    with pytest.raises(ValueError, match="touch_set_mirror=true mirrors the touch sets' episodes"):
+        HapticGlance(policy="line_scan", touch_set_mirror=True)
 
 
 @pytest.mark.parametrize("policy", ["random", "line_scan"])

@@ -220,6 +220,20 @@ def test_wide_touch_set_miss_frame_decides_whether_misses_say_where_the_object_l
     assert torch.allclose(clf(along), logits, atol=1e-5)
 
 
+@pytest.mark.parametrize("miss_frame", ["touches", "line"])
+def test_mirrored_touch_set_reads_an_episode_and_its_mirror_image_alike(miss_frame) -> None:
+    """Mirrored across the line (X -> 2 line_x - X), touches and misses alike: the same answer with `mirror`, and
+    another without it."""
+    points = touched_points([True, False, True, True, False, True])
+    points[..., 0] = points[..., 0].abs() + 0.1  # every touch on the +x side of a line at X = 0.05
+    image = points.clone()
+    image[..., 0] = 0.1 - points[..., 0]
+    for mirror in (True, False):
+        clf = TouchSetClassifier.wide(4, miss_frame=miss_frame, mirror=mirror)
+        clf.line_x = 0.05
+        assert torch.allclose(clf(image), clf(points), atol=1e-5) == mirror
+
+
 def test_touch_set_miss_frame_is_checked() -> None:
     with pytest.raises(ValueError, match="miss_frame='side'"):
         TouchSetClassifier.wide(4, miss_frame="side")

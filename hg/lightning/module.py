@@ -125,7 +125,7 @@ class HapticGlance(pl.LightningModule):
                  touch_set_prefix: bool = False, policy_reads_touch_set: bool = False,
                  policy_warmup_steps: int = 0, std_final_scale: float = 1.0, lr_final_scale: float = 1.0,
                  ce_prefixes: Literal["all", "last"] = "all", final_touch_set: bool = False,
-                 touch_set_miss_frame: Literal["touches", "line"] = "touches") -> None:
+                 touch_set_miss_frame: Literal["touches", "line"] = "touches", touch_set_mirror: bool = False) -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -168,9 +168,12 @@ class HapticGlance(pl.LightningModule):
         # beyond the paper: the logits of a translation-invariant classifier of the touched points are added
         # touch_set_prefix: its head also reads which prefix it scores (one-hot)
         n_prefixes = n_probes if touch_set_prefix else 0
-        # touch_set_miss_frame: where the wide nets place a miss (TouchSetClassifier's miss_frame)
-        touch_nets = {"small": lambda: TouchSetClassifier(n_classes, hidden=hidden, n_prefixes=n_prefixes),
-                      "wide": lambda: TouchSetClassifier.wide(n_classes, n_prefixes, touch_set_miss_frame)}
+        # touch_set_miss_frame: where the wide nets place a miss; touch_set_mirror: every touch set reads an episode
+        # and its mirror image across the line alike (TouchSetClassifier's miss_frame and mirror)
+        touch_nets = {"small": lambda: TouchSetClassifier(n_classes, hidden=hidden, n_prefixes=n_prefixes,
+                                                          mirror=touch_set_mirror),
+                      "wide": lambda: TouchSetClassifier.wide(n_classes, n_prefixes, touch_set_miss_frame,
+                                                              touch_set_mirror)}
         if touch_set_net not in touch_nets:
             raise ValueError(f"model.touch_set_net={touch_set_net!r}: expected one of {sorted(touch_nets)}")
         if touch_set_miss_frame not in ("touches", "line"):
@@ -179,12 +182,15 @@ class HapticGlance(pl.LightningModule):
             raise ValueError(f"model.touch_set_miss_frame={touch_set_miss_frame!r}: places the misses of a wide touch "
                              "set, so it needs model.touch_set_net: wide (with model.touch_set) or "
                              "model.final_touch_set")
+        if touch_set_mirror and not (touch_set or final_touch_set):
+            raise ValueError("model.touch_set_mirror=true mirrors the touch sets' episodes, so it needs model.touch_set "
+                             "or model.final_touch_set")
         self.touch_set = touch_nets[touch_set_net]() if touch_set else None
         # beyond the paper: the answer after the last probe comes from a wide touch set of its own, which the
         # cross-entropy trains on whole episodes only; one classifier scoring every prefix reads a reordered scan's
         # full set of probes worse (model.ce_prefixes: last, docs/training.md)
-        self.final_touch_set = TouchSetClassifier.wide(n_classes, miss_frame=touch_set_miss_frame) \
-            if final_touch_set else None
+        self.final_touch_set = TouchSetClassifier.wide(n_classes, miss_frame=touch_set_miss_frame,
+                                                       mirror=touch_set_mirror) if final_touch_set else None
         if policy_reads_touch_set and not touch_set:
             raise ValueError("model.policy_reads_touch_set=true needs model.touch_set=true (the policy reads its "
                              "pooled features)")
@@ -246,6 +252,18 @@ class HapticGlance(pl.LightningModule):
                              "near that prior)")
 
     # -- simulator -----------------------------------------------------------------------------------
+    @property
+    def sim(self) -> ProbeSimulator | None:
+        return self._sim
+
+    @sim.setter
+    def sim(self, sim: ProbeSimulator | None) -> None:
+        self._sim = sim
+        if sim is not None:  # the touch sets' mirror needs to know where the line is
+            for net in (self.touch_set, self.final_touch_set):
+                if net is not None:
+                    net.line_x = sim.scene.probe_x * self.hparams.point_scale
+
     def setup(self, stage: str) -> None:
         if self.sim is None:
             self.sim = self.trainer.datamodule.make_simulator()

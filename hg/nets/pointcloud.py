@@ -95,6 +95,11 @@ class TouchSetClassifier(nn.Module):
     touches): relative to the touches they would say where the object lies across the line and how deep, which the
     held-out position cells do not share with the training ones; as they are, they say only which way the ray went.
 
+    With `mirror`, each prefix's probes are mirrored across the probe line's vertical plane (X = `line_x`, point
+    coordinates; the model sets it from its scene) when their touches' mean lies on its -x side: an object and its
+    mirror image across the line then read alike, so one lying off the line to -x is read as those seen to +x. For
+    object sets with mirror-symmetric shapes, as hg4's, this loses nothing.
+
     With `n_prefixes` > 0 the head also reads which prefix it scores (one-hot, k < n_prefixes): one set of weights
     then need not read a scan's sparse first probes and its full set of probes alike.
 
@@ -103,8 +108,9 @@ class TouchSetClassifier(nn.Module):
 
     def __init__(self, n_classes: int, shared: tuple[int, ...] = (64, 128, 256), hidden: int = 256,
                  scale: float = 5.0, misses: bool = False, layer_norm: bool = False, n_prefixes: int = 0,
-                 miss_frame: str = "touches") -> None:
+                 miss_frame: str = "touches", mirror: bool = False) -> None:
         super().__init__()
+        self.mirror, self.line_x = mirror, 0.0
         if miss_frame not in ("touches", "line"):
             raise ValueError(f"miss_frame={miss_frame!r}: expected 'touches' or 'line'")
         if miss_frame == "line" and not misses:
@@ -118,9 +124,10 @@ class TouchSetClassifier(nn.Module):
         self.head = mlp([self.pooled_dim + n_prefixes, hidden, n_classes], last_act=False, layer_norm=layer_norm)
 
     @classmethod
-    def wide(cls, n_classes: int, n_prefixes: int = 0, miss_frame: str = "touches") -> "TouchSetClassifier":
+    def wide(cls, n_classes: int, n_prefixes: int = 0, miss_frame: str = "touches",
+             mirror: bool = False) -> "TouchSetClassifier":
         return cls(n_classes, shared=(64, 128, 512), misses=True, layer_norm=True, n_prefixes=n_prefixes,
-                   miss_frame=miss_frame)
+                   miss_frame=miss_frame, mirror=mirror)
 
     def forward(self, points: Tensor) -> Tensor:
         """points (B, N, 4): X, Y, Z and the contact flag T -> logits (B, N, n_classes)."""
@@ -144,10 +151,15 @@ class TouchSetClassifier(nn.Module):
             k = torch.full_like(j, n - 1)
         else:  # the pairs, prefix by prefix
             k, j = torch.tril_indices(n, n, device=points.device)
-        relative = (xyz[:, j] - centre[:, k]) * self.scale  # (B, P, 3)
+        at, centre_k = xyz[:, j], centre[:, k]  # (B, P, 3): each pair's point and its prefix's centre
+        if self.mirror:  # X -> line_x - (X - line_x) for the prefixes whose touches lie on the -x side
+            flip = (centre_k[..., :1] < self.line_x).to(points.dtype) * torch.tensor([1.0, 0.0, 0.0],
+                                                                                   device=points.device)
+            at, centre_k = (v - 2 * flip * (v[..., :1] - self.line_x) for v in (at, centre_k))
+        relative = (at - centre_k) * self.scale  # (B, P, 3)
         if self.miss_frame == "line":  # a miss's X and Z as its ray left them
             across = torch.tensor([True, False, True], device=points.device)
-            relative = torch.where(across & (touched[:, j, None] < 0.5), xyz[:, j] * self.scale, relative)
+            relative = torch.where(across & (touched[:, j, None] < 0.5), at * self.scale, relative)
         if self.misses:  # every probe of the prefix is pooled
             features = self.shared(torch.cat([relative, touched[:, j, None]], -1))  # (B, P, F)
         else:  # only the touched ones
