@@ -73,6 +73,10 @@ ROWS = {
     "side_scan_touchset_wide_final_long_lr_decay": Row(
         "side-picking scan (steep first pair) + PCRN-FC + wide touch set, a touch set of its own after the 10th probe, "
         "16000 steps, learning rate falling to 5% (beyond the paper)", learned=False),
+    "side_scan_touchset_wide_final_mirror_long_lr_decay": Row(
+        "side-picking scan (steep first pair) + PCRN-FC + wide touch set, a touch set of its own after the 10th probe, "
+        "both reading an episode and its mirror image across the line alike, 16000 steps, learning rate falling to 5% "
+        "(beyond the paper)", learned=False),
     "centre_scan_touchset_wide_long": Row("centre-out scan + PCRN-FC + wide touch set, 16000 steps (beyond the "
                                           "paper)", learned=False),
     "centre_scan_touchset_wide_lr_decay": Row("centre-out scan + PCRN-FC + wide touch set, learning rate falling to "
