@@ -45,6 +45,9 @@ class Row:
     encoder: str = "pcrn"
 
 
+SIDE_SCAN = "side-picking scan (steep first pair) + PCRN-FC + wide touch set"
+FINAL_TOUCH_SET = "a touch set of its own after the 10th probe"
+LONG_DECAY = "16000 steps, learning rate falling to 5%"
 ROWS = {
     "pcrn_fc": Row("PCRN-FC", paper="PCRN-FC"),
     "pcrn_nclass": Row("PCRN-N-class", paper="PCRN-N-class"),
@@ -67,16 +70,12 @@ ROWS = {
     "centre_scan_touchset_wide": Row("centre-out scan + PCRN-FC + wide touch set (beyond the paper)", learned=False),
     "side_scan_touchset_wide": Row("side-picking scan (steep first pair) + PCRN-FC + wide touch set (beyond the "
                                    "paper)", learned=False),
-    "side_scan_touchset_wide_long_lr_decay": Row("side-picking scan (steep first pair) + PCRN-FC + wide touch set, "
-                                                 "16000 steps, learning rate falling to 5% (beyond the paper)",
-                                                 learned=False),
-    "side_scan_touchset_wide_final_long_lr_decay": Row(
-        "side-picking scan (steep first pair) + PCRN-FC + wide touch set, a touch set of its own after the 10th probe, "
-        "16000 steps, learning rate falling to 5% (beyond the paper)", learned=False),
+    "side_scan_touchset_wide_long_lr_decay": Row(f"{SIDE_SCAN}, {LONG_DECAY} (beyond the paper)", learned=False),
+    "side_scan_touchset_wide_final_long_lr_decay": Row(f"{SIDE_SCAN}, {FINAL_TOUCH_SET}, {LONG_DECAY} (beyond the "
+                                                       "paper)", learned=False),
     "side_scan_touchset_wide_final_mirror_long_lr_decay": Row(
-        "side-picking scan (steep first pair) + PCRN-FC + wide touch set, a touch set of its own after the 10th probe, "
-        "both reading an episode and its mirror image across the line alike, 16000 steps, learning rate falling to 5% "
-        "(beyond the paper)", learned=False),
+        f"{SIDE_SCAN}, {FINAL_TOUCH_SET}, both reading an episode and its mirror image across the line alike, "
+        f"{LONG_DECAY} (beyond the paper)", learned=False),
     "centre_scan_touchset_wide_long": Row("centre-out scan + PCRN-FC + wide touch set, 16000 steps (beyond the "
                                           "paper)", learned=False),
     "centre_scan_touchset_wide_lr_decay": Row("centre-out scan + PCRN-FC + wide touch set, learning rate falling to "
