@@ -68,8 +68,7 @@ ROWS = {
     "fan_follow_scan_touchset": Row("fanned scan following the touches + PCRN-FC + touch set (beyond the paper)",
                                     learned=False),
     "centre_scan_touchset_wide": Row("centre-out scan + PCRN-FC + wide touch set (beyond the paper)", learned=False),
-    "side_scan_touchset_wide": Row("side-picking scan (steep first pair) + PCRN-FC + wide touch set (beyond the "
-                                   "paper)", learned=False),
+    "side_scan_touchset_wide": Row(f"{SIDE_SCAN} (beyond the paper)", learned=False),
     "side_scan_touchset_wide_long_lr_decay": Row(f"{SIDE_SCAN}, {LONG_DECAY} (beyond the paper)", learned=False),
     "side_scan_touchset_wide_final_long_lr_decay": Row(f"{SIDE_SCAN}, {FINAL_TOUCH_SET}, {LONG_DECAY} (beyond the "
                                                        "paper)", learned=False),
