@@ -15,7 +15,8 @@ from pytorch_lightning.callbacks import ModelCheckpoint
 
 from hg.lightning import HapticGlance, ProbeDataModule, discounted_returns, hybrid_loss
 from hg.lightning.callbacks import WeightEMA
-from hg.lightning.module import relative_to_first_touch
+from hg.lightning.module import Rollout, relative_to_first_touch
+from hg.nets import reflect
 from hg.sim.scene import Scene
 from hg.sim.simulator import ProbeSimulator
 
@@ -210,20 +211,59 @@ def test_rollout_is_a_function_of_the_batch_seed(data):
     assert not torch.equal(first.actions, mean_action.actions)
 
 
-@pytest.mark.parametrize("encoder, point_frame, reads_touch_set", [
-    ("pcrn", "episode", False), ("pcrn", "first_touch", False), ("lstm", "episode", False),
-    ("pcrn", "episode", True)])
-def test_log_prob_is_taken_under_the_policy_that_acted(data, encoder, point_frame, reads_touch_set):
+@pytest.mark.parametrize("encoder, point_frame, reads_touch_set, mirror", [
+    ("pcrn", "episode", False, False), ("pcrn", "first_touch", False, False), ("lstm", "episode", False, False),
+    ("pcrn", "episode", True, False), ("pcrn", "episode", False, True), ("lstm", "episode", True, True)])
+def test_log_prob_is_taken_under_the_policy_that_acted(data, encoder, point_frame, reads_touch_set, mirror):
     """The states rebuilt for the loss (whole sequences) must be those the rollout sampled from (one probe at a
-    time): the mean-action rollout's requests are then exactly the means the loss pass computes."""
+    time): the mean-action rollout's requests are then exactly the means the loss pass computes (with
+    mirror_encoder, in the view each state was read in)."""
+    # the side-picking scan as prior, so that some episodes touch to -x and act in the mirrored view
     model = make_model(data, encoder=encoder, point_frame=point_frame, touch_set=reads_touch_set,
-                       touch_set_net="wide", policy_reads_touch_set=reads_touch_set)
+                       touch_set_net="wide", policy_reads_touch_set=reads_touch_set, mirror_encoder=mirror,
+                       prior="line_scan", scan_side=0.6, scan_span=0.5, scan_order="centre_out")
     batch = first_batch(data)
     rollout = model.rollout(batch["labels"], batch["poses"], 1, deterministic=True)
     extra = model.touch_set.pooled(rollout.points) if reads_touch_set else None
-    states = model.location.states(model.encoder(rollout.requests, model.encoder_points(rollout.points)), extra)
-    mu, _ = model.location.distribution(states, rollout.actions)
-    torch.testing.assert_close(rollout.actions, mu)
+    states = model.policy_states(model.encode(rollout), rollout.points, extra)
+    mirrored = model.mirrored_states(rollout.points)
+    assert mirrored.any() == mirror
+    offsets = reflect(model.prior_offsets(rollout.points), 1, where=mirrored)
+    mu, _ = model.location.distribution(states, reflect(rollout.actions, 1, where=mirrored), offsets)
+    torch.testing.assert_close(reflect(rollout.actions, 1, where=mirrored), mu)
+
+
+def test_mirror_encoder_reads_an_episode_and_its_mirror_image_alike(data):
+    """Mirrored across the line (X -> 2 line_x - X, Ux -> -Ux): the same answers and, in its own frame, the same
+    policy wherever the probes so far touched something (before a touch no side is known, so no view is chosen)."""
+    model = make_model(data, mirror_encoder=True, touch_set=True, touch_set_mirror=True)
+    model.line_x = model.touch_set.line_x = 0.03  # off the scene's line (0): the mirror must read where it is
+    model.eval()  # no dropout
+    batch = first_batch(data)
+    rollout = model.rollout(batch["labels"], batch["poses"], 2)
+    image = Rollout(reflect(rollout.actions, 1), reflect(rollout.requests, 1),
+                    reflect(rollout.points, 0, model.line_x), rollout.reached)
+    seen = (rollout.points[..., 3] > 0.5).cumsum(1) > 0  # (B, N): prefix k touched something
+    assert seen.any() and (~seen).any()
+
+    def read(r):
+        _, logits = model.evaluate(r, batch["labels"])
+        mirrored = model.mirrored_states(r.points)
+        states = model.policy_states(model.encode(r), r.points)
+        return logits, model.location.distribution(states, reflect(r.actions, 1, where=mirrored))[0]
+
+    (logits, mu), (image_logits, image_mu) = read(rollout), read(image)
+    torch.testing.assert_close(logits[seen], image_logits[seen])
+    state_seen = F.pad(seen[:, :-1], (1, 0), value=False)
+    torch.testing.assert_close(mu[state_seen], image_mu[state_seen])
+    assert not torch.allclose(logits[~seen], image_logits[~seen])  # the views differ: the mirror does the work
+    plain = make_model(data, touch_set=True, touch_set_mirror=True)
+    plain.line_x = plain.touch_set.line_x = 0.03
+    plain.eval()
+    assert not torch.allclose(plain.evaluate(rollout, batch["labels"])[1][seen],
+                              plain.evaluate(image, batch["labels"])[1][seen])
+    with pytest.raises(ValueError, match="mirror_encoder=true mirrors the episode frame"):
+        HapticGlance(mirror_encoder=True, point_frame="first_touch")
 
 
 def test_points_relative_to_first_touch():

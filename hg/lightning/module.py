@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from hg.nets import (PCRN, Baseline, FCClassifier, LinearClassifier, LocationNetwork, LSTMEncoder, NClassClassifier,
-                     TouchSetClassifier)
+                     TouchSetClassifier, left_of_line, reflect)
 from hg.sim import ProbeSimulator
 from hg.sim.robot import achieved
 
@@ -101,6 +101,13 @@ class Rollout:
     reached: Tensor  # (B, N) bool: the arm achieved the request within 5 mm and 3 degrees
 
 
+def pick_view(views: Tensor, mirrored: Tensor) -> Tensor:
+    """views (V, B, ...) of the episodes (HapticGlance.encoder_views) -> (B, ...): the last view (the mirrored one,
+    if any) where mirrored (B, ...) is True, else the first."""
+    return torch.where(mirrored.reshape(*mirrored.shape, *[1] * (views.dim() - 1 - mirrored.dim())), views[-1],
+                       views[0])
+
+
 class HapticGlance(pl.LightningModule):
     """PCRN (or the LSTM baseline) with a location network, a baseline and a classifier, trained by eq. (6).
 
@@ -125,7 +132,8 @@ class HapticGlance(pl.LightningModule):
                  touch_set_prefix: bool = False, policy_reads_touch_set: bool = False,
                  policy_warmup_steps: int = 0, std_final_scale: float = 1.0, lr_final_scale: float = 1.0,
                  ce_prefixes: Literal["all", "last"] = "all", final_touch_set: bool = False,
-                 touch_set_miss_frame: Literal["touches", "line"] = "touches", touch_set_mirror: bool = False) -> None:
+                 touch_set_miss_frame: Literal["touches", "line"] = "touches", touch_set_mirror: bool = False,
+                 mirror_encoder: bool = False) -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -199,9 +207,13 @@ class HapticGlance(pl.LightningModule):
         self.location = LocationNetwork(policy_dim, hidden=128, std_floor=std_floor, std_max=std_max,
                                         zero_mean=prior_exact)
         self.baseline = Baseline(policy_dim)  # b_k reads the state s_k the policy reads
+        self.line_x = 0.0  # where the probe line is, in point coordinates (the mirrors need it; set with the sim)
         self.sim: ProbeSimulator | None = None
         if point_frame not in ("episode", "first_touch"):
             raise ValueError(f"model.point_frame={point_frame!r}: expected 'episode' or 'first_touch'")
+        if mirror_encoder and point_frame != "episode":
+            raise ValueError(f"model.mirror_encoder=true mirrors the episode frame across the probe line, so it needs "
+                             f"model.point_frame: episode, got {point_frame!r}")
         if not 0.0 < scan_span <= 1.0:
             raise ValueError(f"model.scan_span={scan_span}: the scanned share of the probe line must be in (0, 1]")
         if not 0.0 <= scan_follow <= 1.0:
@@ -259,10 +271,11 @@ class HapticGlance(pl.LightningModule):
     @sim.setter
     def sim(self, sim: ProbeSimulator | None) -> None:
         self._sim = sim
-        if sim is not None:  # the touch sets' mirror needs to know where the line is
+        if sim is not None:  # the mirrors need to know where the line is
+            self.line_x = sim.scene.probe_x * self.hparams.point_scale
             for net in (self.touch_set, self.final_touch_set):
                 if net is not None:
-                    net.line_x = sim.scene.probe_x * self.hparams.point_scale
+                    net.line_x = self.line_x
 
     def setup(self, stage: str) -> None:
         if self.sim is None:
@@ -278,7 +291,8 @@ class HapticGlance(pl.LightningModule):
                      generator: torch.Generator, follow_scan: bool = False) -> Tensor:
         """Request k + 1 of every episode (k may be 0), given the points (B, N, 4) of the rollout so far (only
         points[:, :k] are read); a learned policy reads the sum of the representations after probes 1..k, which
-        the rollout keeps running. follow_scan: the fixed scan, whatever the policy."""
+        the rollout keeps running ((V, B, D), one per view of encoder_views()). follow_scan: the fixed scan,
+        whatever the policy."""
         policy, batch = self.hparams.policy, len(points)
         if policy == "random":
             return torch.rand(batch, 4, generator=generator) * 2 - 1
@@ -287,10 +301,13 @@ class HapticGlance(pl.LightningModule):
         extra = None
         if self.hparams.policy_reads_touch_set and k > 0:  # what the touch set pooled from probes 1..k
             extra = self.touch_set.pooled(points[:, :k].to(self.device), last_only=True)[:, -1]
-        state = self.location.state(rep_sum, k, batch_size=batch, extra=extra)
+        mirrored = self.mirrored_states(points[:, :k + 1])[:, k].to(self.device)  # the policy acts in that view
+        state = self.location.state(None if rep_sum is None else pick_view(rep_sum, mirrored), k, batch_size=batch,
+                                    extra=extra)
         offsets = self.prior_offsets(points)
-        offset = None if offsets is None else offsets[:, k].to(state.device)
-        return self.location.sample(state, deterministic=deterministic, generator=generator, offset=offset)[0]
+        offset = None if offsets is None else reflect(offsets[:, k].to(state.device), 1, where=mirrored)
+        action = self.location.sample(state, deterministic=deterministic, generator=generator, offset=offset)[0]
+        return reflect(action, 1, where=mirrored)
 
     def prior_offsets(self, points: Tensor) -> Tensor | None:
         """(B, N, 4) pre-tanh means of the learned policy's prior, or None without one. Beyond the paper: the
@@ -460,8 +477,11 @@ class HapticGlance(pl.LightningModule):
                 reached[:, k] = torch.from_numpy(achieved(result.pose_error))
             if self.hparams.policy == "learned" and not follow_scan and k + 1 < n:  # each probe is encoded once
                 # (evaluate() redoes the whole sequence with gradients); the last one is never read by the policy
-                rep, memory = self.encoder.step(action.clamp(-1, 1).to(self.device),
-                                                self.encoder_points(points[:, :k + 1])[:, k].to(self.device), memory)
+                views = self.encoder_views(action.clamp(-1, 1).to(self.device),
+                                           self.encoder_points(points[:, :k + 1])[:, k].to(self.device))
+                memory = memory or [None] * len(views)
+                steps = [self.encoder.step(r, p, m) for (r, p), m in zip(views, memory)]
+                rep, memory = torch.stack([r for r, _ in steps]), [m for _, m in steps]
                 rep_sum = rep if rep_sum is None else rep_sum + rep
         device = self.device
         return Rollout(actions.to(device), actions.clamp(-1, 1).to(device), points.to(device), reached.to(device))
@@ -470,15 +490,49 @@ class HapticGlance(pl.LightningModule):
         """The points as the encoder reads them: in the episode frame (the paper) or relative to the first touch."""
         return relative_to_first_touch(points) if self.hparams.point_frame == "first_touch" else points
 
+    def encoder_views(self, requests: Tensor, points: Tensor) -> list[tuple[Tensor, Tensor]]:
+        """The (requests, points) the encoder reads, (..., 4) each: the episode, and with `mirror_encoder` also its
+        mirror image across the probe line (X -> 2 line_x - X, Ux -> -Ux). Beyond the paper: the prefixes whose
+        touches lie to -x are read in the second view (mirrored_prefixes), and the policy acts in it, so an object
+        off the line to -x is probed and named as its mirror image to +x, which hg4's mirror-symmetric shapes allow."""
+        views = [(requests, points)]
+        if self.hparams.mirror_encoder:
+            views.append((reflect(requests, 1), reflect(points, 0, self.line_x)))
+        return views
+
+    def mirrored_prefixes(self, points: Tensor) -> Tensor:
+        """(B, N) bool: the prefixes (probes 1..k+1 for row k) read in the mirrored view; none without
+        `mirror_encoder`."""
+        if not self.hparams.mirror_encoder:
+            return torch.zeros(points.shape[:2], dtype=torch.bool, device=points.device)
+        return left_of_line(points, self.line_x)
+
+    def mirrored_states(self, points: Tensor) -> Tensor:
+        """(B, N) bool: the policy states s_k (reading probes 1..k) in the mirrored view: mirrored_prefixes one
+        probe later (s_0 reads nothing)."""
+        return F.pad(self.mirrored_prefixes(points)[:, :-1], (1, 0), value=False)
+
+    def policy_states(self, rep: Tensor, points: Tensor, extra: Tensor | None = None) -> Tensor:
+        """(B, N, D'): every s_k of a rollout at once, from the encoder's views (V, B, N, D) of it (encode()):
+        the state the rollout sampled request k + 1 from."""
+        return pick_view(torch.stack([self.location.states(r, extra) for r in rep]), self.mirrored_states(points))
+
+    def encode(self, rollout: Rollout) -> Tensor:
+        """(V, B, N, D): the encoder's representation after each probe, in each view of encoder_views()."""
+        views = self.encoder_views(rollout.requests, self.encoder_points(rollout.points))
+        return torch.stack([self.encoder(r, p) for r, p in views])
+
     # -- loss ----------------------------------------------------------------------------------------
     def evaluate(self, rollout: Rollout, labels: Tensor, learn_policy: bool = True,
                  sampled: Tensor | None = None) -> tuple[dict[str, Tensor], Tensor]:
         """Forward pass over a finished rollout: the loss terms (without the policy's when not learn_policy) and
         the logits (B, N, C). sampled (B,) bool: the episodes that train the policy (default: all)."""
-        logits = pooled = None
-        if self.classifier is not None:
-            rep = self.encoder(rollout.requests, self.encoder_points(rollout.points))
-            logits = self.classifier(rep)
+        logits = pooled = rep = None
+        if self.classifier is not None:  # (else the policy is fixed and nothing reads the encoder)
+            rep = self.encode(rollout)
+            # each prefix is read whole in its view: a classifier pooling the probes so far (PCRN-FC) pools them all
+            # in the same one
+            logits = pick_view(torch.stack([self.classifier(r) for r in rep]), self.mirrored_prefixes(rollout.points))
         if self.touch_set is not None:
             pooled = self.touch_set.pooled(rollout.points)
             read = self.touch_set.read(pooled)
@@ -491,9 +545,14 @@ class HapticGlance(pl.LightningModule):
             # s_k from which request k was drawn; beyond the paper, the policy may read it without training the encoder
             # and the touch set's pooled features, which learn from the cross-entropy only
             extra = pooled.detach() if self.hparams.policy_reads_touch_set else None
-            states = self.location.states(rep.detach() if self.hparams.policy_reads_detached else rep, extra)
+            states = self.policy_states(rep.detach() if self.hparams.policy_reads_detached else rep, rollout.points,
+                                        extra)
+            # the policy drew each request in its state's view (next_actions)
+            mirrored = self.mirrored_states(rollout.points)
             offsets = self.prior_offsets(rollout.points)
-            log_pi, mu, sigma = self.location.log_prob_and_moments(states, rollout.actions, offsets)
+            offsets = None if offsets is None else reflect(offsets, 1, where=mirrored)
+            log_pi, mu, sigma = self.location.log_prob_and_moments(states, reflect(rollout.actions, 1, where=mirrored),
+                                                                   offsets)
             baseline = self.baseline(states.detach())
         h = self.hparams
         # the gradient of log N grows as 1 / std: a shrinking std must not let the policy term crowd the others

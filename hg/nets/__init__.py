@@ -3,6 +3,7 @@
 from hg.nets.heads import Baseline, FCClassifier, LinearClassifier, NClassClassifier
 from hg.nets.location import LocationNetwork
 from hg.nets.lstm import LSTMEncoder
+from hg.nets.mirror import left_of_line, reflect
 from hg.nets.mlp import cumulative_mean, mlp
 from hg.nets.p2carb import P2CARB
 from hg.nets.pcrn import PCRN
@@ -21,5 +22,7 @@ __all__ = [
     "PointNet",
     "TouchSetClassifier",
     "cumulative_mean",
+    "left_of_line",
     "mlp",
+    "reflect",
 ]

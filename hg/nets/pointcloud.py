@@ -4,6 +4,7 @@ the touch-set classifier that reads the touched points of a rollout."""
 import torch
 from torch import Tensor, nn
 
+from hg.nets.mirror import left_of_line, reflect
 from hg.nets.mlp import mlp
 
 
@@ -152,10 +153,9 @@ class TouchSetClassifier(nn.Module):
         else:  # the pairs, prefix by prefix
             k, j = torch.tril_indices(n, n, device=points.device)
         at, centre_k = xyz[:, j], centre[:, k]  # (B, P, 3): each pair's point and its prefix's centre
-        if self.mirror:  # X -> line_x - (X - line_x) for the prefixes whose touches lie on the -x side
-            flip = (centre_k[..., :1] < self.line_x).to(points.dtype) * torch.tensor([1.0, 0.0, 0.0],
-                                                                                   device=points.device)
-            at, centre_k = (v - 2 * flip * (v[..., :1] - self.line_x) for v in (at, centre_k))
+        if self.mirror:  # X -> 2 line_x - X for the prefixes whose touches lie on the -x side
+            flip = left_of_line(points, self.line_x)[:, k]
+            at, centre_k = (reflect(v, 0, self.line_x, flip) for v in (at, centre_k))
         relative = (at - centre_k) * self.scale  # (B, P, 3)
         if self.miss_frame == "line":  # a miss's X and Z as its ray left them
             across = torch.tensor([True, False, True], device=points.device)
