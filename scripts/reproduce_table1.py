@@ -178,6 +178,11 @@ ROWS = {
         "with the policy from step 8000, policy starting exactly on the scan and held near it, learning rate falling "
         "to 5%, a touch set of its own after the 10th probe, both touch sets reading an episode and its mirror image "
         "across the line alike (beyond the paper)"),
+    "pcrn_fc_side_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final_mirror_encoder": Row(
+        "PCRN-FC+ from the side-picking scan (steep first pair) + wide touch set, std shrinking to a tenth, 16000 steps "
+        "with the policy from step 8000, policy starting exactly on the scan and held near it, learning rate falling "
+        "to 5%, a touch set of its own after the 10th probe, the whole model (encoder, classifiers, policy) reading an "
+        "episode and its mirror image across the line alike (beyond the paper)"),
     "pcrn_fc_coarse_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay": Row(
         "PCRN-FC+ from the coarse-first scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
         "from step 8000, policy starting exactly on the scan and held near it, learning rate falling to 5% (beyond "
