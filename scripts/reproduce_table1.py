@@ -48,6 +48,9 @@ class Row:
 SIDE_SCAN = "side-picking scan (steep first pair) + PCRN-FC + wide touch set"
 FINAL_TOUCH_SET = "a touch set of its own after the 10th probe"
 LONG_DECAY = "16000 steps, learning rate falling to 5%"
+SIDE_LEARNED = ("PCRN-FC+ from the side-picking scan (steep first pair) + wide touch set, std shrinking to a tenth, 16000 "
+                "steps with the policy from step 8000, policy starting exactly on the scan and held near it, learning "
+                f"rate falling to 5%, {FINAL_TOUCH_SET}")
 ROWS = {
     "pcrn_fc": Row("PCRN-FC", paper="PCRN-FC"),
     "pcrn_nclass": Row("PCRN-N-class", paper="PCRN-N-class"),
@@ -170,19 +173,13 @@ ROWS = {
         "to a tenth, 16000 steps with the policy from step 8000, policy starting exactly on the scan and held near "
         "it, learning rate falling to 5%, a touch set of its own after the 10th probe (beyond the paper)"),
     "pcrn_fc_side_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final": Row(
-        "PCRN-FC+ from the side-picking scan (steep first pair) + wide touch set, std shrinking to a tenth, 16000 steps "
-        "with the policy from step 8000, policy starting exactly on the scan and held near it, learning rate falling "
-        "to 5%, a touch set of its own after the 10th probe (beyond the paper)"),
+        f"{SIDE_LEARNED} (beyond the paper)"),
     "pcrn_fc_side_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final_mirror": Row(
-        "PCRN-FC+ from the side-picking scan (steep first pair) + wide touch set, std shrinking to a tenth, 16000 steps "
-        "with the policy from step 8000, policy starting exactly on the scan and held near it, learning rate falling "
-        "to 5%, a touch set of its own after the 10th probe, both touch sets reading an episode and its mirror image "
-        "across the line alike (beyond the paper)"),
+        f"{SIDE_LEARNED}, both touch sets reading an episode and its mirror image across the line alike (beyond the "
+        "paper)"),
     "pcrn_fc_side_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final_mirror_encoder": Row(
-        "PCRN-FC+ from the side-picking scan (steep first pair) + wide touch set, std shrinking to a tenth, 16000 steps "
-        "with the policy from step 8000, policy starting exactly on the scan and held near it, learning rate falling "
-        "to 5%, a touch set of its own after the 10th probe, the whole model (encoder, classifiers, policy) reading an "
-        "episode and its mirror image across the line alike (beyond the paper)"),
+        f"{SIDE_LEARNED}, the whole model (encoder, classifiers, policy) reading an episode and its mirror image "
+        "across the line alike (beyond the paper)"),
     "pcrn_fc_coarse_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay": Row(
         "PCRN-FC+ from the coarse-first scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
         "from step 8000, policy starting exactly on the scan and held near it, learning rate falling to 5% (beyond "
