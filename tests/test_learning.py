@@ -225,8 +225,8 @@ def test_log_prob_is_taken_under_the_policy_that_acted(data, encoder, point_fram
     batch = first_batch(data)
     rollout = model.rollout(batch["labels"], batch["poses"], 1, deterministic=True)
     extra = model.touch_set.pooled(rollout.points) if reads_touch_set else None
-    states = model.policy_states(model.encode(rollout), rollout.points, extra)
     mirrored = model.mirrored_states(rollout.points)
+    states = model.policy_states(model.encode(rollout), mirrored, extra)
     assert mirrored.any() == mirror
     offsets = reflect(model.prior_offsets(rollout.points), 1, where=mirrored)
     mu, _ = model.location.distribution(states, reflect(rollout.actions, 1, where=mirrored), offsets)
@@ -237,7 +237,7 @@ def test_mirror_encoder_reads_an_episode_and_its_mirror_image_alike(data):
     """Mirrored across the line (X -> 2 line_x - X, Ux -> -Ux): the same answers and, in its own frame, the same
     policy wherever the probes so far touched something (before a touch no side is known, so no view is chosen)."""
     model = make_model(data, mirror_encoder=True, touch_set=True, touch_set_mirror=True)
-    model.line_x = model.touch_set.line_x = 0.03  # off the scene's line (0): the mirror must read where it is
+    model.line_x = 0.03  # off the scene's line (0): the mirror must read where it is
     model.eval()  # no dropout
     batch = first_batch(data)
     rollout = model.rollout(batch["labels"], batch["poses"], 2)
@@ -249,7 +249,7 @@ def test_mirror_encoder_reads_an_episode_and_its_mirror_image_alike(data):
     def read(r):
         _, logits = model.evaluate(r, batch["labels"])
         mirrored = model.mirrored_states(r.points)
-        states = model.policy_states(model.encode(r), r.points)
+        states = model.policy_states(model.encode(r), mirrored)
         return logits, model.location.distribution(states, reflect(r.actions, 1, where=mirrored))[0]
 
     (logits, mu), (image_logits, image_mu) = read(rollout), read(image)
@@ -258,7 +258,7 @@ def test_mirror_encoder_reads_an_episode_and_its_mirror_image_alike(data):
     torch.testing.assert_close(mu[state_seen], image_mu[state_seen])
     assert not torch.allclose(logits[~seen], image_logits[~seen])  # the views differ: the mirror does the work
     plain = make_model(data, touch_set=True, touch_set_mirror=True)
-    plain.line_x = plain.touch_set.line_x = 0.03
+    plain.line_x = 0.03
     plain.eval()
     assert not torch.allclose(plain.evaluate(rollout, batch["labels"])[1][seen],
                               plain.evaluate(image, batch["labels"])[1][seen])

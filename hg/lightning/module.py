@@ -207,7 +207,7 @@ class HapticGlance(pl.LightningModule):
         self.location = LocationNetwork(policy_dim, hidden=128, std_floor=std_floor, std_max=std_max,
                                         zero_mean=prior_exact)
         self.baseline = Baseline(policy_dim)  # b_k reads the state s_k the policy reads
-        self.line_x = 0.0  # where the probe line is, in point coordinates (the mirrors need it; set with the sim)
+        self.line_x = 0.0  # where the probe line is (set with the sim)
         self.sim: ProbeSimulator | None = None
         if point_frame not in ("episode", "first_touch"):
             raise ValueError(f"model.point_frame={point_frame!r}: expected 'episode' or 'first_touch'")
@@ -273,9 +273,19 @@ class HapticGlance(pl.LightningModule):
         self._sim = sim
         if sim is not None:  # the mirrors need to know where the line is
             self.line_x = sim.scene.probe_x * self.hparams.point_scale
-            for net in (self.touch_set, self.final_touch_set):
-                if net is not None:
-                    net.line_x = self.line_x
+
+    @property
+    def line_x(self) -> float:
+        """X of the probe line in point coordinates: what every mirror reflects about (the model's and its touch
+        sets', which this keeps in step)."""
+        return self._line_x
+
+    @line_x.setter
+    def line_x(self, line_x: float) -> None:
+        self._line_x = line_x
+        for net in (self.touch_set, self.final_touch_set):
+            if net is not None:
+                net.line_x = line_x
 
     def setup(self, stage: str) -> None:
         if self.sim is None:
@@ -512,10 +522,10 @@ class HapticGlance(pl.LightningModule):
         probe later (s_0 reads nothing)."""
         return F.pad(self.mirrored_prefixes(points)[:, :-1], (1, 0), value=False)
 
-    def policy_states(self, rep: Tensor, points: Tensor, extra: Tensor | None = None) -> Tensor:
-        """(B, N, D'): every s_k of a rollout at once, from the encoder's views (V, B, N, D) of it (encode()):
-        the state the rollout sampled request k + 1 from."""
-        return pick_view(torch.stack([self.location.states(r, extra) for r in rep]), self.mirrored_states(points))
+    def policy_states(self, rep: Tensor, mirrored: Tensor, extra: Tensor | None = None) -> Tensor:
+        """(B, N, D'): every s_k of a rollout at once, from the encoder's views (V, B, N, D) of it (encode()) and
+        the states read mirrored (B, N) (mirrored_states()): the state the rollout sampled request k + 1 from."""
+        return pick_view(torch.stack([self.location.states(r, extra) for r in rep]), mirrored)
 
     def encode(self, rollout: Rollout) -> Tensor:
         """(V, B, N, D): the encoder's representation after each probe, in each view of encoder_views()."""
@@ -545,10 +555,8 @@ class HapticGlance(pl.LightningModule):
             # s_k from which request k was drawn; beyond the paper, the policy may read it without training the encoder
             # and the touch set's pooled features, which learn from the cross-entropy only
             extra = pooled.detach() if self.hparams.policy_reads_touch_set else None
-            states = self.policy_states(rep.detach() if self.hparams.policy_reads_detached else rep, rollout.points,
-                                        extra)
-            # the policy drew each request in its state's view (next_actions)
-            mirrored = self.mirrored_states(rollout.points)
+            mirrored = self.mirrored_states(rollout.points)  # the policy drew each request in its state's view
+            states = self.policy_states(rep.detach() if self.hparams.policy_reads_detached else rep, mirrored, extra)
             offsets = self.prior_offsets(rollout.points)
             offsets = None if offsets is None else reflect(offsets, 1, where=mirrored)
             log_pi, mu, sigma = self.location.log_prob_and_moments(states, reflect(rollout.actions, 1, where=mirrored),
