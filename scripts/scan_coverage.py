@@ -10,7 +10,8 @@ least one touch, the mean tilt of the requests from vertical, and the share of t
 towards the object's side.
 For a checkpoint also its accuracy after all probes on those rollouts,
 split by how many probes touched (a classifier can only be as good as what it touched) and by how far the
-object lies off the probe line. Seconds on one core.
+object lies off the probe line; for a learned policy started from a scan, also how far its requests moved from
+that scan and its classifiers' accuracy when fed that scan instead (what the policy adds). Seconds on one core.
 
 With `--fit EPISODES`, also how much a fixed scan's probes can say about the class: a PointNet (hg/nets, with
 BatchNorm and dropout; or `--fit-net touch_set*`, one of the model's touch-set classifiers) trained supervised on the
@@ -51,7 +52,8 @@ Last line: JSON {"<order>-span<span>[-lean<lean>][-follow<follow>][-cross<cross>
 [-first<first>][-aim<aim>]" or "<checkpoint>": {"touches": .., "touches_first_half": .., "any_touch": ..,
 "tilt_deg": .., "towards_object": ..[, "fit_accuracy" or "fit_side_accuracy": ..][, "first_touch_side": {"share": ..,
 "accuracy": ..}][, "accuracy": .., "by_touches": {"0-1": {"share": .., "accuracy": ..}, ...}, "by_offset_cm":
-{"0-5": {...}, "5-10": .., "10+": ..}][, "prior_shift_rms": {"py": .., "ux": .., "uy": .., "uz": ..}]}, ...}.
+{"0-5": {...}, "5-10": .., "10+": ..}][, "prior_shift_rms": {"py": .., "ux": .., "uy": .., "uz": ..},
+"accuracy_on_prior_scan": ..]}, ...}.
 """
 from __future__ import annotations
 
@@ -97,6 +99,18 @@ def policy_probes(model: HapticGlance, sim: ProbeSimulator, labels: np.ndarray, 
     requests = rollout.requests.double().numpy()
     directions = sim.scene.request_to_probe(requests.reshape(-1, 4))[1]
     return rollout.points, directions.reshape(*requests.shape[:2], 3), correct, shift
+
+
+def accuracy_on_prior_scan(model: HapticGlance, sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray,
+                           seed: int = 0) -> float:
+    """Accuracy after the last probe of a learned checkpoint's classifiers fed the fixed scan its policy started from
+    (`model.prior: line_scan`) instead of its policy's probes: what the policy's own probes add over that scan."""
+    model.sim = sim
+    labels_t = torch.from_numpy(labels)
+    rollout = model.rollout(labels_t, torch.from_numpy(poses), seed=seed, follow_scan=True)
+    with torch.no_grad():
+        return float((model.evaluate(rollout, labels_t, learn_policy=False)[1][:, -1].argmax(-1) == labels_t)
+                     .float().mean())
 
 
 class OracleAimedScan(HapticGlance):
@@ -411,6 +425,7 @@ def main() -> None:
         r = results[name] = coverage(touches, directions, offsets)
         if shift is not None:
             r["prior_shift_rms"] = shift
+            r["accuracy_on_prior_scan"] = round(accuracy_on_prior_scan(model, sim, labels, poses), 4)
         if args.fit_target == "side":
             r["first_touch_side"] = first_touch_side(touches, directions, offsets, args.fit_probes)
         if args.fit and name in scans:
@@ -435,7 +450,9 @@ def main() -> None:
             print(f"{name}: accuracy after {args.n_probes} probes {r['accuracy']:.3f} ({split})")
         if "prior_shift_rms" in r:
             print(f"{name}: mean requests off the prior's, rms per component: "
-                  + ", ".join(f"{c} {v:.3f}" for c, v in r["prior_shift_rms"].items()))
+                  + ", ".join(f"{c} {v:.3f}" for c, v in r["prior_shift_rms"].items())
+                  + f"; its classifiers fed the prior's scan instead: accuracy after {args.n_probes} probes "
+                  f"{r['accuracy_on_prior_scan']:.3f}")
     for name, r in results.items():
         if "first_touch_side" in r:
             side = r["first_touch_side"]

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
+
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "WANDB_MODE": "disabled", "OMP_NUM_THREADS": "1"}
 
@@ -270,3 +271,29 @@ def test_knn_ceiling_votes_the_nearest_episodes_and_runs_on_the_scored_split():
     assert 0.25 < json.loads(knn.stdout.strip().splitlines()[-1])["centre_out-span0.5"]["fit_accuracy"] <= 1
     bad = run("scan_coverage", "--fit", "8", "--fit-net", "knn", "--fit-k", "9")
     assert bad.returncode != 0 and "--fit-k 9: must be in [1, --fit 8]" in bad.stderr
+
+
+def test_learned_policy_is_read_against_the_scan_it_started_from():
+    import numpy as np
+
+    from hg.lightning.module import HapticGlance
+    from hg.sim import PoseRegions, ProbeSimulator, sample_episodes
+
+    coverage = script("scan_coverage")
+    sim = ProbeSimulator("hg4", batch_size=64, mode="ideal", seed=0)
+    labels, poses = sample_episodes(PoseRegions(sim.scene), "val", 64, 4, np.random.default_rng(0))
+    torch.manual_seed(0)
+    scan = dict(n_probes=4, scan_span=0.5, scan_order="centre_out")  # straight: no request at the clamp (+-0.9)
+    learned = HapticGlance(policy="learned", prior="line_scan", prior_exact=True, **scan).eval()
+    points, _, correct, shift = coverage.policy_probes(learned, sim, labels, poses)
+    on_scan = coverage.accuracy_on_prior_scan(learned, sim, labels, poses)
+    fixed_points = coverage.policy_probes(HapticGlance(policy="line_scan", **scan), sim, labels, poses)[0]
+    with torch.no_grad():  # the policy moves off its scan along the line: its probes change, the scan's do not
+        learned.location.net[-1].bias[0].add_(0.5)
+    moved_points = coverage.policy_probes(learned, sim, labels, poses)[0]
+    moved = coverage.accuracy_on_prior_scan(learned, sim, labels, poses)
+    sim.close()
+    # untrained, exactly on its scan (prior_exact): its probes are the scan's, so it is read as the scan
+    assert max(shift.values()) < 1e-5 and torch.allclose(points, fixed_points, atol=1e-5)
+    assert on_scan == pytest.approx(float(correct.mean()))
+    assert not torch.allclose(moved_points, fixed_points, atol=1e-3) and moved == on_scan
