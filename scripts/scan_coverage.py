@@ -80,6 +80,12 @@ MIN_LEAN_DEG = 1.0  # a probe tilted more than this from straight down leans
 SIDE_MIN_OFFSET = 0.05  # --fit-target side is scored where the object lies at least this far off the line (m)
 
 
+def right_after_last_probe(model: HapticGlance, rollout, labels: torch.Tensor) -> np.ndarray:
+    """(episodes,) whether the model's classifiers name each episode's object after the rollout's last probe."""
+    with torch.no_grad():
+        return (model.evaluate(rollout, labels, learn_policy=False)[1][:, -1].argmax(-1) == labels).numpy()
+
+
 def policy_probes(model: HapticGlance, sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray, seed: int = 0
                   ) -> tuple[torch.Tensor, np.ndarray, np.ndarray, dict[str, float] | None]:
     """(episodes, probes, 4) points and (episodes, probes, 3) unit probe directions of the model's policy (mean
@@ -89,8 +95,7 @@ def policy_probes(model: HapticGlance, sim: ProbeSimulator, labels: np.ndarray, 
     model.sim = sim
     labels_t = torch.from_numpy(labels)
     rollout = model.rollout(labels_t, torch.from_numpy(poses), seed=seed, deterministic=True)
-    with torch.no_grad():
-        correct = (model.evaluate(rollout, labels_t)[1][:, -1].argmax(-1) == labels_t).numpy()
+    correct = right_after_last_probe(model, rollout, labels_t)
     shift = None
     if model.hparams.policy == "learned" and model.hparams.prior != "none":
         prior = torch.tanh(model.prior_offsets(rollout.points))  # the requests of the mean policy it started from
@@ -108,9 +113,7 @@ def accuracy_on_prior_scan(model: HapticGlance, sim: ProbeSimulator, labels: np.
     model.sim = sim
     labels_t = torch.from_numpy(labels)
     rollout = model.rollout(labels_t, torch.from_numpy(poses), seed=seed, follow_scan=True)
-    with torch.no_grad():
-        return float((model.evaluate(rollout, labels_t, learn_policy=False)[1][:, -1].argmax(-1) == labels_t)
-                     .float().mean())
+    return float(right_after_last_probe(model, rollout, labels_t).mean())
 
 
 class OracleAimedScan(HapticGlance):
