@@ -3,7 +3,8 @@
 A classifier can only name an object it has touched, so the touches a scan collects, and how early, bound what
 the line-scan baselines and the policies started from them (`model.prior: line_scan`) can reach. For each fixed
 scan (`model.scan_span` x `model.scan_order` x `model.scan_lean` x `model.scan_follow` (x `_probes`) x
-`model.scan_cross` x `model.scan_reach` x `model.scan_side` x `model.scan_side_first`, as in
+`model.scan_cross` x `model.scan_reach` x `model.scan_side` x `model.scan_side_first` x
+`model.scan_side_pair_apart`, as in
 `HapticGlance.scan_requests`) and for each checkpoint's mean-action policy (`--ckpt`), on the same episodes of a
 pose split: mean touches per episode after all probes and after half of them, the share of episodes with at
 least one touch, the mean tilt of the requests from vertical, and the share of the leaning probes that lean
@@ -41,6 +42,7 @@ probe that touched leans to), so no split's base rates enter it.
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --reaches 0 1     # leaning while it touches nothing
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --sides 0 0.6     # leaning to the side it found
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --sides 0.6 --side-firsts 1   # ... found by a steeper pair
+    .venv/bin/python scripts/scan_coverage.py --spans 0.5 --sides 0.6 --side-firsts 1 --side-pairs same apart  # pair apart
     .venv/bin/python scripts/scan_coverage.py --ckpt runs/table1/pcrn_fc_plus-seed0/checkpoints/best-step7500.ckpt
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --fit 16384 --episodes 4096   # what the scan can say
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --aims 0 0.6 exact --fit 16384   # ... aimed by an oracle
@@ -49,7 +51,7 @@ probe that touched leans to), so no split's base rates enter it.
     .venv/bin/python scripts/scan_coverage.py --spans 0.5 --sides 0.6 --fit 16384 --fit-target side --fit-probes 4
 
 Last line: JSON {"<order>-span<span>[-lean<lean>][-follow<follow>][-cross<cross>][-reach<reach>][-side<side>]
-[-first<first>][-aim<aim>]" or "<checkpoint>": {"touches": .., "touches_first_half": .., "any_touch": ..,
+[-first<first>][-apart][-aim<aim>]" or "<checkpoint>": {"touches": .., "touches_first_half": .., "any_touch": ..,
 "tilt_deg": .., "towards_object": ..[, "fit_accuracy" or "fit_side_accuracy": ..][, "first_touch_side": {"share": ..,
 "accuracy": ..}][, "accuracy": .., "by_touches": {"0-1": {"share": .., "accuracy": ..}, ...}, "by_offset_cm":
 {"0-5": {...}, "5-10": .., "10+": ..}][, "prior_shift_rms": {"py": .., "ux": .., "uy": .., "uz": ..},
@@ -351,6 +353,9 @@ def main() -> None:
     parser.add_argument("--side-firsts", type=float, nargs="+", default=[0.0],
                         help="model.scan_side_first values: the side-picking scan's first two probes' lean (0: as "
                              "the rest)")
+    parser.add_argument("--side-pairs", choices=["same", "apart"], nargs="+", default=["same"],
+                        help="where the side-picking scan's first two probes enter: both at its first place, or at "
+                             "its first two (model.scan_side_pair_apart)")
     parser.add_argument("--aims", nargs="+", default=["0"],
                         help="oracle leans towards the object's centre: request units, or 'exact'; or 'side': a "
                              "side-picking scan (--sides) whose later probes lean to the side read from the pose "
@@ -390,14 +395,15 @@ def main() -> None:
              + (f"x{follow_probes}" if follow_probes else "")
              + (f"-cross{cross:g}" if cross else "") + (f"-reach{reach:g}" if reach else "")
              + (f"-side{side:g}" if side else "") + (f"-first{first:g}" if first else "")
+             + ("-apart" if pair == "apart" else "")
              + (f"-aim{aim}" if aim != "0" else ""):
              scan_model(aim, n_probes=args.n_probes, policy="line_scan", scan_span=span, scan_order=order,
                         scan_lean=lean, scan_follow=follow, scan_follow_probes=follow_probes, scan_cross=cross,
-                        scan_reach=reach, scan_side=side, scan_side_first=first)
+                        scan_reach=reach, scan_side=side, scan_side_first=first, scan_side_pair_apart=pair == "apart")
              for order in args.orders for span in args.spans for lean in args.leans for follow in args.follows
              for follow_probes in args.follow_probes for cross in args.crosses for reach in args.reaches
-             for side in args.sides for first in args.side_firsts for aim in args.aims
-             if scan_options_combine(lean, follow, cross, reach, side) and (side or not first)
+             for side in args.sides for first in args.side_firsts for pair in args.side_pairs for aim in args.aims
+             if scan_options_combine(lean, follow, cross, reach, side) and (side or not (first or pair == "apart"))
              and (follow or not follow_probes)
              and (aim == "0" or (bool(side) == (aim == "side") and not (lean or cross or reach)))}
     models = dict(scans)

@@ -615,6 +615,13 @@ def test_side_scan_leans_both_ways_first_then_to_the_side_its_touches_show(data)
     torch.testing.assert_close(steep_requests[:2, :, :3], requests[:2, :, :3])  # the pair touched: as before
     assert (steep_requests[:, :2, 3] == 0.0).all() and (steep_requests[:2, 2:, 3] == 0.4).all()
     assert (steep_requests[2:, 2:, 1] == 0).all() and (steep_requests[2:, 2:, 3] == 1.0).all()  # else straight
+    apart = HapticGlance(n_probes=6, policy="line_scan", scan_span=0.5, scan_order="centre_out", scan_side=0.6,
+                         scan_side_pair_apart=True)  # the pair at the scan's first two places: every place once
+    apart_requests = apart.scan_requests(points)
+    torch.testing.assert_close(apart_requests[..., 0], places.expand(4, -1))
+    torch.testing.assert_close(apart_requests[..., 1:], requests[..., 1:])  # the same leans and sides
+    with pytest.raises(ValueError, match="model.scan_side_pair_apart=True: .* needs model.scan_side > 0"):
+        HapticGlance(scan_side_pair_apart=True)
     with pytest.raises(ValueError, match="model.scan_side=3"):
         HapticGlance(scan_side=3.0)
     with pytest.raises(ValueError, match="model.scan_side_first=1.0: .* needs model.scan_side > 0"):

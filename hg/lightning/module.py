@@ -126,7 +126,7 @@ class HapticGlance(pl.LightningModule):
                  prior_anchor: float = 0.0, mean_action_share: float = 0.0, scan_span: float = 1.0,
                  scan_order: ScanOrder = "sweep", scan_lean: float = 0.0, scan_follow: float = 0.0,
                  scan_cross: float = 0.0, scan_reach: float = 0.0, scan_side: float = 0.0,
-                 scan_side_first: float = 0.0, scan_follow_probes: int = 0,
+                 scan_side_first: float = 0.0, scan_side_pair_apart: bool = False, scan_follow_probes: int = 0,
                  point_frame: Literal["episode", "first_touch"] = "episode",
                  touch_set: bool = False, touch_set_net: Literal["small", "wide"] = "small",
                  touch_set_prefix: bool = False, policy_reads_touch_set: bool = False,
@@ -229,6 +229,9 @@ class HapticGlance(pl.LightningModule):
         if scan_side_first and not scan_side:
             raise ValueError(f"model.scan_side_first={scan_side_first}: sets the lean of the side-picking scan's first "
                              "two probes, so it needs model.scan_side > 0")
+        if scan_side_pair_apart and not scan_side:
+            raise ValueError("model.scan_side_pair_apart=True: places the side-picking scan's first two probes, so it "
+                             "needs model.scan_side > 0")
         if scan_side and n_probes < 2:
             raise ValueError(f"model.scan_side={scan_side}: the side-picking scan needs model.n_probes >= 2, got "
                              f"{n_probes}")
@@ -423,7 +426,9 @@ class HapticGlance(pl.LightningModule):
         towards the object meets its surface before one leaning away. With `scan_side_first` the first two lean by
         that instead, and only they pick the side: a steeper pair names it more often right when it touches
         (scan_coverage.py --fit-target side), and if neither touched the rest go straight down, because a probe
-        leaning the wrong way misses what a straight one grazes."""
+        leaning the wrong way misses what a straight one grazes. With `scan_side_pair_apart` the pair takes the
+        scan's first two places instead of one (the scan keeps its last): two probes at one place say little more
+        about the profile than one, and the higher of two touches a step apart still names the side."""
         n, lean = scan.shape[1], self.hparams.scan_side
         first_lean = self.hparams.scan_side_first or lean
         k = torch.arange(n, device=scan.device)
@@ -437,7 +442,7 @@ class HapticGlance(pl.LightningModule):
         if self.hparams.scan_side_first:  # the pair alone picks the side; if it touched nothing, straight down
             straight = (first[:, None] >= 2) & (k >= 2)
             ux, uz = torch.where(straight, 0.0, ux), torch.where(straight, 1.0, uz)
-        py = scan[:, (k - 1).clamp(min=0), 0]
+        py = scan[:, k if self.hparams.scan_side_pair_apart else (k - 1).clamp(min=0), 0]
         return torch.stack([py, ux, torch.zeros_like(ux), uz], -1)
 
     def line_scan_requests(self) -> Tensor:
