@@ -559,10 +559,18 @@ def test_prior_anchor_charges_the_mean_policy_for_leaving_its_prior(data):
     assert terms["prior_shift"] > 0.01
     torch.testing.assert_close(losses[2.0] - losses[0.0], 2.0 * terms["prior_shift"])
     assert pulls[2.0] - pulls[0.0] > 0  # a gradient step pulls the mean back towards the scan
+    model.hparams.prior_anchor, model.hparams.prior_anchor_free = 2.0, ("py",)  # Py left to the policy
+    free, _ = model.evaluate(rollout, batch["labels"])
+    torch.testing.assert_close(free["loss"].detach(), losses[0.0])  # only Py moved: nothing left to charge
+    torch.testing.assert_close(free["prior_shift"], terms["prior_shift"])  # the shift is still reported whole
     with pytest.raises(ValueError, match="model.prior_anchor=1.0: needs model.prior: line_scan"):
         HapticGlance(prior_anchor=1.0)
     with pytest.raises(ValueError, match="model.prior_anchor=-1.0: must be >= 0"):
         HapticGlance(prior="line_scan", prior_anchor=-1.0)
+    with pytest.raises(ValueError, match=r"model.prior_anchor_free=\['ux'\]: .* needs model.prior_anchor > 0"):
+        HapticGlance(prior="line_scan", prior_anchor_free=("ux",))
+    with pytest.raises(ValueError, match=r"model.prior_anchor_free: \['lean'\] not among"):
+        HapticGlance(prior="line_scan", prior_anchor=1.0, prior_anchor_free=("lean",))
 
 
 def test_mean_action_share_probes_some_episodes_with_the_mean_and_trains_the_policy_on_the_others(data):

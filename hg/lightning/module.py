@@ -123,7 +123,8 @@ class HapticGlance(pl.LightningModule):
                  normalize_advantage: bool = False, policy_reads_detached: bool = False,
                  reward: Literal["correct", "log_gain"] = "correct", policy_lr_scale: float = 1.0,
                  prior: Literal["none", "line_scan"] = "none", prior_lean: float = 0.0, prior_exact: bool = False,
-                 prior_anchor: float = 0.0, mean_action_share: float = 0.0, scan_span: float = 1.0,
+                 prior_anchor: float = 0.0, prior_anchor_free: tuple[Literal["py", "ux", "uy", "uz"], ...] = (),
+                 mean_action_share: float = 0.0, scan_span: float = 1.0,
                  scan_order: ScanOrder = "sweep", scan_lean: float = 0.0, scan_follow: float = 0.0,
                  scan_cross: float = 0.0, scan_reach: float = 0.0, scan_side: float = 0.0,
                  scan_side_first: float = 0.0, scan_side_pair_apart: bool = False, scan_follow_probes: int = 0,
@@ -265,6 +266,12 @@ class HapticGlance(pl.LightningModule):
         if prior_anchor and prior != "line_scan":
             raise ValueError(f"model.prior_anchor={prior_anchor}: needs model.prior: line_scan (it holds the policy "
                              "near that prior)")
+        if prior_anchor_free and not prior_anchor:
+            raise ValueError(f"model.prior_anchor_free={list(prior_anchor_free)}: frees components of the anchor, so it "
+                             "needs model.prior_anchor > 0")
+        if unknown := set(prior_anchor_free) - set(COMPONENTS):
+            raise ValueError(f"model.prior_anchor_free: {sorted(unknown)} not among the request's components "
+                             f"{list(COMPONENTS)}")
 
     # -- simulator -----------------------------------------------------------------------------------
     @property
@@ -579,11 +586,13 @@ class HapticGlance(pl.LightningModule):
             if offsets is not None:
                 # how far the mean policy has moved from its prior (request units, squared, summed over components);
                 # beyond the paper, `prior_anchor` charges for it, so the policy leaves the scan its classifier
-                # learned behind only where the reward pays for the move
-                shift = (mu - torch.tanh(offsets)).pow(2).sum(-1).mean()
-                terms["prior_shift"] = shift.detach()
+                # learned behind only where the reward pays for the move, except in the components
+                # `prior_anchor_free` leaves to the policy (the lean, say, whose size the scan fixes by hand)
+                shift = (mu - torch.tanh(offsets)).pow(2)
+                terms["prior_shift"] = shift.detach().sum(-1).mean()
                 if h.prior_anchor:
-                    terms["loss"] = terms["loss"] + h.prior_anchor * shift
+                    held = torch.tensor([c not in h.prior_anchor_free for c in COMPONENTS], device=shift.device)
+                    terms["loss"] = terms["loss"] + h.prior_anchor * (shift * held).sum(-1).mean()
         return terms, logits
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
