@@ -434,8 +434,9 @@ class HapticGlance(pl.LightningModule):
         that instead, and only they pick the side: a steeper pair names it more often right when it touches
         (scan_coverage.py --fit-target side), and if neither touched the rest go straight down, because a probe
         leaning the wrong way misses what a straight one grazes. With `scan_side_pair_apart` the pair takes the
-        scan's first two places instead of one (the scan keeps its last): two probes at one place say little more
-        about the profile than one, and the higher of two touches a step apart still names the side."""
+        scan's first two places instead of one (the scan keeps its last), so every place is probed; it names the side
+        as well but reads worse (scan_coverage.py --side-pairs, docs/training.md): two probes entering at one place
+        from both sides read the object's cross-section there."""
         n, lean = scan.shape[1], self.hparams.scan_side
         first_lean = self.hparams.scan_side_first or lean
         k = torch.arange(n, device=scan.device)
