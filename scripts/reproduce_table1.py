@@ -183,6 +183,12 @@ ROWS = {
     "pcrn_fc_side_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final_mirror_free_lean": Row(
         f"{SIDE_LEARNED}, both touch sets reading an episode and its mirror image across the line alike, the lean "
         "across the line left to the policy (beyond the paper)"),
+    "pcrn_fc_side_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final_mirror_free_py": Row(
+        f"{SIDE_LEARNED}, both touch sets reading an episode and its mirror image across the line alike, where the "
+        "probes enter the line left to the policy (beyond the paper)"),
+    "pcrn_fc_side_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final_mirror_anchor01": Row(
+        f"{SIDE_LEARNED}, both touch sets reading an episode and its mirror image across the line alike, the anchor "
+        "to the scan at a tenth of its weight (beyond the paper)"),
     "pcrn_fc_side_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final_mirror_encoder": Row(
         f"{SIDE_LEARNED}, the whole model (encoder, classifiers, policy) reading an episode and its mirror image "
         "across the line alike (beyond the paper)"),
