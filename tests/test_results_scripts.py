@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -296,3 +297,31 @@ def test_learned_policy_is_read_against_the_scan_it_started_from():
     assert max(shift.values()) < 1e-5 and torch.allclose(points, fixed_points, atol=1e-5)
     assert on_scan == pytest.approx(float(correct.mean()))
     assert not torch.allclose(moved_points, fixed_points, atol=1e-3) and moved == on_scan
+
+
+def test_planner_probes_where_the_reading_tells_the_class_and_runs_on_real_probes():
+    planner = script("planner_ceiling")
+    labels = torch.arange(400).remainder(2).numpy()
+    # candidate 0 reads the same for every class, candidate 1 touches class 1 only, candidate 2 at random
+    library = np.stack([np.full(400, 0.1), np.where(labels == 1, 0.2, planner.MISS),
+                        np.random.default_rng(0).uniform(0, 0.5, 400)], 1).astype(np.float32)
+    bins = np.where(library == planner.MISS, 0, 1 + library / 0.05).astype(np.int64)
+    entropy = planner.expected_entropy(bins, labels, np.ones(400), 12, 2)
+    assert entropy.argmin() == 1 and entropy[1] == pytest.approx(0.0) and entropy[0] == pytest.approx(np.log(2))
+    for query, label in ((np.array([0.1, 0.2, 0.3]), 1), (np.array([0.1, planner.MISS, 0.3]), 0)):
+        chosen, named = planner.probe_episode(query, library, bins, labels, 2, 12, 2, 0.005, 1e-3, first=0)
+        assert chosen == [0, 1] and named[1] == label  # the uninformative first probe, then the telling one
+        fixed, _ = planner.probe_episode(query, library, bins, labels, 2, 12, 2, 0.005, 1e-3, first=0,
+                                         fixed=np.array([2, 0]))
+        assert fixed == [2, 0]
+    assert planner.log_likelihood(0.2, np.array([0.2, 0.21, planner.MISS]), 0.01, 1e-3) == pytest.approx(
+        [0.0, -0.5, np.log(1e-3)])
+    real = run("planner_ceiling", "--episodes", "16", "--library", "2048", "--n-probes", "3", "--places", "3",
+               "--leans", "1.0", "--fixed")
+    assert real.returncode == 0, real.stderr[-2000:]
+    result = json.loads(real.stdout.strip().splitlines()[-1])
+    assert result["candidates"] == 9 and len(result["planner"]["accuracy"]) == 3
+    assert result["fixed"]["tilt_deg"] == 0 and result["fixed"]["places"] == 3  # straight, one probe per place
+    assert all(0 <= a <= 1 for a in result["planner"]["accuracy"])
+    bad = run("planner_ceiling", "--n-probes", "10", "--places", "1", "--leans")
+    assert bad.returncode != 0 and "--n-probes 10: more than the 1 candidates" in bad.stderr

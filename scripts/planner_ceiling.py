@@ -1,0 +1,216 @@
+"""What probes chosen one by one from what they touch could say: a greedy information-gain planner over a library.
+
+The fixed scans' nearest-neighbour ceilings (scan_coverage.py --fit-net knn) stay under 0.85 after 5 probes in
+every order, span, lean and pair placement read so far, so that target needs probes placed by what the earlier
+ones touched. This script asks how far that can go without learning anything. A library of episodes (objects at
+poses of --library-split) is probed once with every candidate probe: the places of the scan (--places over the
+middle --span of the line) times a direction (straight down, or leaning across the line to +x or -x by each of
+--leans, as model.scan_side). Each episode of --split is then probed --n-probes times; before each probe the
+planner weighs the library by how well each library episode's readings of the probes so far match this episode's
+(a touch's distance along the ray within --sigma, touch against miss by --mismatch), and takes the candidate whose
+reading would leave the least entropy over the class, expected over the weighted library (readings binned by
+--bin). After each probe it names the class of most weight.
+
+With the library drawn from the scored split's own poses (`--library-split val`, the default) it has seen the
+held-out positions, as the nearest-neighbour ceilings have: a reading of what adaptive probes can say, not a
+classifier of ours. With `--library-split train` it is a planner that could be used as it is (no held-out pose
+enters it). `--fixed` scores the straight centre-out scan over the same places with the same weighing, to set the
+planner against the scans' ceilings. The library is read in ideal mode; `--mode arm` probes the scored episodes with
+the arm, whose achieved probes stray from the requested ones (every candidate is read up front, as the arm would
+read the chosen one), and `--table-episodes` scores the very episodes the tables score. Minutes on one core.
+
+    .venv/bin/python scripts/planner_ceiling.py                          # 1024 val episodes, library of 262144
+    .venv/bin/python scripts/planner_ceiling.py --library-split train    # a planner that never saw the val poses
+    .venv/bin/python scripts/planner_ceiling.py --library-split train --split test --episodes 2048 --table-episodes \
+        --mode arm                                                       # ... on Table 1's own test episodes
+
+Last line: JSON {"planner" [and "fixed"]: {"accuracy": [after probe 1, ..., N], "touches": .., "touches_first_half":
+.., "tilt_deg": .., "leaning_towards_object": .., "places": ..}, "library": .., "library_split": .., "episodes": ..,
+"split": .., "candidates": ..}.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from hg.sim import SPLITS, PoseRegions, ProbeSimulator, sample_episodes  # noqa: E402
+
+MISS = -1.0  # the reading of a probe that touched nothing
+PRUNE = 30.0  # library episodes whose log-weight falls this far below the best one's are dropped for good
+
+
+def candidate_requests(places: int, span: float, leans: list[float]) -> np.ndarray:
+    """(C, 4) requests: every place of the scan (evenly over the middle `span` of the line) with every direction,
+    straight down first, then to +x and -x by each lean (ux = +-1, uz = 1 - lean, as model.scan_side)."""
+    directions = [(0.0, 0.0, 1.0)] + [(side, 0.0, 1.0 - lean) for lean in leans for side in (1.0, -1.0)]
+    return np.array([(py, *d) for py in np.linspace(-span, span, places) for d in directions])
+
+
+def readings(sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+    """(E, C) float32: how far along each candidate's ray the probe touched the episode's object (m), MISS if not;
+    episodes in batches of the simulator's size, every candidate for each batch."""
+    out = np.empty((len(labels), len(candidates)), dtype=np.float32)
+    for start in range(0, len(labels), sim.batch_size):
+        end = min(start + sim.batch_size, len(labels))
+        sim.reset(labels[start:end], poses[start:end])
+        for c, request in enumerate(candidates):
+            result = sim.probe(np.repeat(request[None], end - start, 0))
+            distance = np.linalg.norm(result.points[:, :3] - result.entry, axis=1)
+            out[start:end, c] = np.where(result.points[:, 3] > 0.5, distance, MISS)
+    return out
+
+
+def log_likelihood(reading: float, library: np.ndarray, sigma: float, mismatch: float) -> np.ndarray:
+    """log p(this episode's reading | library episode's reading), up to a constant: a Gaussian in the touch's
+    distance along the ray, log(mismatch) where one touched and the other did not."""
+    touched, library_touched = reading != MISS, library != MISS
+    ll = np.where(touched == library_touched, 0.0, np.log(mismatch))
+    if touched:
+        ll = np.where(library_touched, -0.5 * ((library - reading) / sigma) ** 2, ll)
+    return ll
+
+
+def expected_entropy(bins: np.ndarray, labels: np.ndarray, weights: np.ndarray, n_bins: int,
+                     n_classes: int) -> np.ndarray:
+    """(C,) the class entropy left after reading each candidate, expected over the weighted library: the library
+    episodes' binned readings (A, C) split the weight into (reading, class) cells per candidate."""
+    n_candidates = bins.shape[1]
+    cell = (np.arange(n_candidates) * n_bins + bins) * n_classes + labels[:, None]
+    mass = np.bincount(cell.ravel(), np.broadcast_to(weights[:, None], cell.shape).ravel(),
+                       minlength=n_candidates * n_bins * n_classes).reshape(n_candidates, n_bins, n_classes)
+    per_bin = mass.sum(-1, keepdims=True)
+    p = np.divide(mass, per_bin, out=np.zeros_like(mass), where=per_bin > 0)
+    entropy = -(p * np.log(np.where(p > 0, p, 1.0))).sum(-1)
+    return (per_bin[..., 0] * entropy).sum(-1) / weights.sum()
+
+
+def probe_episode(query: np.ndarray, library: np.ndarray, bins: np.ndarray, labels: np.ndarray, n_probes: int,
+                  n_bins: int, n_classes: int, sigma: float, mismatch: float, first: int,
+                  fixed: np.ndarray | None = None) -> tuple[list[int], list[int]]:
+    """The candidates probed in one episode (its readings `query`, (C,)) and the class named after each probe:
+    the planner's choices, or the `fixed` sequence. `first`: the planner's first choice, the same in every episode."""
+    alive, log_w = np.arange(len(library)), np.zeros(len(library))
+    used, chosen, named = np.zeros(library.shape[1], dtype=bool), [], []
+    for k in range(n_probes):
+        if fixed is not None:
+            c = int(fixed[k])
+        elif k == 0:
+            c = first
+        else:
+            score = expected_entropy(bins[alive], labels[alive], np.exp(log_w - log_w.max()), n_bins, n_classes)
+            score[used] = np.inf  # in ideal mode a repeated probe reads the same
+            c = int(score.argmin())
+        used[c] = True
+        chosen.append(c)
+        log_w = log_w + log_likelihood(float(query[c]), library[alive, c], sigma, mismatch)
+        keep = log_w >= log_w.max() - PRUNE
+        alive, log_w = alive[keep], log_w[keep]
+        named.append(int(np.bincount(labels[alive], np.exp(log_w - log_w.max()), minlength=n_classes).argmax()))
+    return chosen, named
+
+
+def summary(chosen: np.ndarray, named: np.ndarray, labels: np.ndarray, query: np.ndarray, candidates: np.ndarray,
+            offsets: np.ndarray, sim: ProbeSimulator) -> dict:
+    """Accuracy after each probe, touches per episode (all, first half), mean tilt from vertical, the share of
+    leaning probes that lean towards the object's side, and distinct places per episode."""
+    touched = np.take_along_axis(query, chosen, 1) != MISS
+    requests = candidates[chosen]
+    direction = sim.scene.request_to_probe(requests.reshape(-1, 4))[1].reshape(*requests.shape[:2], 3)
+    tilt = np.degrees(np.arccos(np.clip(-direction[..., 2], -1, 1)))
+    leaning = tilt > 1.0
+    towards = np.sign(direction[..., 0]) == np.sign(offsets)[:, None]
+    return {"accuracy": [round(float(a), 4) for a in (named == labels[:, None]).mean(0)],
+            "touches": round(float(touched.sum(1).mean()), 3),
+            "touches_first_half": round(float(touched[:, :chosen.shape[1] // 2].sum(1).mean()), 3),
+            "tilt_deg": round(float(tilt.mean()), 2),
+            "leaning_towards_object": round(float(towards[leaning].mean()), 3) if leaning.any() else None,
+            "places": round(float(np.mean([len(set(requests[i, :, 0])) for i in range(len(requests))])), 2)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--episodes", type=int, default=1024)
+    parser.add_argument("--split", choices=SPLITS, default="val")
+    parser.add_argument("--table-episodes", action="store_true",
+                        help="score the episodes the tables score on this split (data.eval_seed 0; --episodes: 1024 "
+                             "for val, 2048 for test) instead of episodes drawn with --seed")
+    parser.add_argument("--mode", choices=["ideal", "arm"], default="ideal",
+                        help="how the scored episodes are probed (the library always in ideal mode)")
+    parser.add_argument("--library", type=int, default=262144, help="library episodes, each probed with every candidate")
+    parser.add_argument("--library-split", choices=SPLITS, default="val")
+    parser.add_argument("--n-probes", type=int, default=10)
+    parser.add_argument("--places", type=int, default=11, help="candidate places along the line")
+    parser.add_argument("--span", type=float, default=0.5, help="the middle of the line they cover (request units)")
+    parser.add_argument("--leans", type=float, nargs="*", default=[0.6, 1.0, 2.0],
+                        help="leans across the line, as model.scan_side (0.6: 16.7 degrees, 1.0: 26.6, 2.0: 45)")
+    parser.add_argument("--sigma", type=float, default=0.005, help="touch distance tolerance (m)")
+    parser.add_argument("--mismatch", type=float, default=1e-3, help="weight kept by a touch read as a miss or back")
+    parser.add_argument("--bin", type=float, default=0.01, help="reading bins for the planner's entropy (m)")
+    parser.add_argument("--fixed", action="store_true", help="also score the straight centre-out scan")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    for name in ("episodes", "library", "n_probes", "places"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name.replace('_', '-')} {getattr(args, name)}: must be >= 1")
+    if not 0 < args.span <= 1:
+        parser.error(f"--span {args.span}: must be in (0, 1]")
+    if any(not 0 < lean <= 2 for lean in args.leans):
+        parser.error(f"--leans {args.leans}: each must be in (0, 2] (uz = 1 - lean stays in [-1, 1])")
+    if args.sigma <= 0 or args.bin <= 0 or not 0 < args.mismatch < 1:
+        parser.error("--sigma and --bin must be > 0, --mismatch in (0, 1)")
+    candidates = candidate_requests(args.places, args.span, args.leans)
+    if args.n_probes > len(candidates):
+        parser.error(f"--n-probes {args.n_probes}: more than the {len(candidates)} candidates")
+
+    start = time.time()
+    sim = ProbeSimulator("hg4", batch_size=1024, mode="ideal", seed=args.seed)
+    regions, n_classes = PoseRegions(sim.scene), len(sim.classes)
+    if args.table_episodes:  # the tables' own episodes: EvalEpisodes as ProbeDataModule builds them
+        from hg.lightning.data import EvalEpisodes
+        batches = EvalEpisodes(regions, args.split, args.episodes, 256, n_classes, seed=0).batches
+        query_labels = np.concatenate([b["labels"].numpy() for b in batches])
+        query_poses = np.concatenate([b["poses"].numpy() for b in batches])
+    else:
+        query_labels, query_poses = sample_episodes(regions, args.split, args.episodes, n_classes,
+                                                    np.random.default_rng(args.seed))
+    labels, poses = sample_episodes(regions, args.library_split, args.library, n_classes,
+                                    np.random.default_rng(args.seed + 1))
+    library = readings(sim, labels, poses, candidates)
+    if args.mode == "arm":  # the arm's achieved probes stray from the requested ones the library was read with
+        with ProbeSimulator("hg4", batch_size=256, mode="arm", seed=args.seed) as arm:
+            query = readings(arm, query_labels, query_poses, candidates)
+    else:
+        query = readings(sim, query_labels, query_poses, candidates)
+    print(f"{len(candidates)} candidates x {args.library} {args.library_split} library episodes, "
+          f"{args.episodes} {args.split} episodes ({args.mode} mode): probed in {time.time() - start:.0f} s", flush=True)
+    n_bins = int(np.ceil(sim.scene.probe_length / args.bin)) + 2
+    bins = np.where(library == MISS, 0, 1 + np.minimum(library / args.bin, n_bins - 2)).astype(np.int64)
+    first = int(expected_entropy(bins, labels, np.ones(len(labels)), n_bins, n_classes).argmin())
+    offsets = query_poses[:, 0] - sim.scene.probe_x
+    order = np.argsort(np.abs(np.linspace(-args.span, args.span, args.places)), kind="stable")
+    runs = {"planner": None} | ({"fixed": order * (1 + 2 * len(args.leans))} if args.fixed else {})
+    results = {}
+    for name, fixed in runs.items():
+        start = time.time()
+        chosen, named = zip(*(probe_episode(q, library, bins, labels, args.n_probes, n_bins, n_classes, args.sigma,
+                                            args.mismatch, first, fixed) for q in query))
+        r = results[name] = summary(np.array(chosen), np.array(named), query_labels, query, candidates, offsets, sim)
+        print(f"{name}: accuracy after each probe " + " ".join(f"{a:.3f}" for a in r["accuracy"])
+              + f"; {r['touches']:.2f} touches ({r['touches_first_half']:.2f} in the first half), tilt "
+              f"{r['tilt_deg']:.1f} deg, {r['places']:.1f} places ({time.time() - start:.0f} s)", flush=True)
+    sim.close()
+    print(json.dumps(results | {"library": args.library, "library_split": args.library_split,
+                                "episodes": args.episodes, "split": args.split, "mode": args.mode,
+                                "table_episodes": args.table_episodes, "candidates": len(candidates)}))
+
+
+if __name__ == "__main__":
+    main()
