@@ -32,11 +32,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -44,7 +47,7 @@ sys.path.insert(0, str(ROOT))
 from hg.sim import SPLITS, PoseRegions, ProbeSimulator, sample_episodes  # noqa: E402
 
 MISS = -1.0  # the reading of a probe that touched nothing
-PRUNE = 30.0  # library episodes whose log-weight falls this far below the best one's are dropped for good
+CHUNK = 128  # scored episodes planned side by side: their weights over the library are (CHUNK, L)
 
 
 def candidate_requests(places: int, span: float, leans: list[float]) -> np.ndarray:
@@ -68,53 +71,56 @@ def readings(sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray, candida
     return out
 
 
-def log_likelihood(reading: float, library: np.ndarray, sigma: float, mismatch: float) -> np.ndarray:
-    """log p(this episode's reading | library episode's reading), up to a constant: a Gaussian in the touch's
-    distance along the ray, log(mismatch) where one touched and the other did not."""
-    touched, library_touched = reading != MISS, library != MISS
-    ll = np.where(touched == library_touched, 0.0, np.log(mismatch))
-    if touched:
-        ll = np.where(library_touched, -0.5 * ((library - reading) / sigma) ** 2, ll)
-    return ll
+def log_likelihood(readings: torch.Tensor, library: torch.Tensor, sigma: float, mismatch: float) -> torch.Tensor:
+    """log p(each episode's reading (Q, 1) | each library episode's reading (Q, L)), up to a constant: a Gaussian in
+    the touch's distance along the ray, log(mismatch) where one touched and the other did not."""
+    touched, library_touched = readings != MISS, library != MISS
+    gauss = -0.5 * ((library - readings) / sigma) ** 2
+    return torch.where(touched == library_touched, torch.where(touched, gauss, 0.0), math.log(mismatch))
 
 
-def expected_entropy(bins: np.ndarray, labels: np.ndarray, weights: np.ndarray, n_bins: int,
-                     n_classes: int) -> np.ndarray:
-    """(C,) the class entropy left after reading each candidate, expected over the weighted library: the library
-    episodes' binned readings (A, C) split the weight into (reading, class) cells per candidate."""
-    n_candidates = bins.shape[1]
+def cell_matrix(bins: np.ndarray, labels: np.ndarray, n_bins: int, n_classes: int) -> torch.Tensor:
+    """(C * n_bins * n_classes, L) sparse 0/1: which (candidate, binned reading, class) cell each library episode
+    falls in, for every candidate at once; times the library's weights it gives each cell's weight."""
+    n, n_candidates = bins.shape
     cell = (np.arange(n_candidates) * n_bins + bins) * n_classes + labels[:, None]
-    mass = np.bincount(cell.ravel(), np.broadcast_to(weights[:, None], cell.shape).ravel(),
-                       minlength=n_candidates * n_bins * n_classes).reshape(n_candidates, n_bins, n_classes)
-    per_bin = mass.sum(-1, keepdims=True)
-    p = np.divide(mass, per_bin, out=np.zeros_like(mass), where=per_bin > 0)
-    entropy = -(p * np.log(np.where(p > 0, p, 1.0))).sum(-1)
-    return (per_bin[..., 0] * entropy).sum(-1) / weights.sum()
+    index = torch.from_numpy(np.stack([cell.ravel(), np.repeat(np.arange(n), n_candidates)]))
+    with warnings.catch_warnings():  # CSR is "beta" in torch; its product with a dense matrix is what we use
+        warnings.simplefilter("ignore", UserWarning)
+        return torch.sparse_coo_tensor(index, torch.ones(cell.size), (n_candidates * n_bins * n_classes, n),
+                                       check_invariants=False).coalesce().to_sparse_csr()
 
 
-def probe_episode(query: np.ndarray, library: np.ndarray, bins: np.ndarray, labels: np.ndarray, n_probes: int,
-                  n_bins: int, n_classes: int, sigma: float, mismatch: float, first: int,
-                  fixed: np.ndarray | None = None) -> tuple[list[int], list[int]]:
-    """The candidates probed in one episode (its readings `query`, (C,)) and the class named after each probe:
-    the planner's choices, or the `fixed` sequence. `first`: the planner's first choice, the same in every episode."""
-    alive, log_w = np.arange(len(library)), np.zeros(len(library))
-    used, chosen, named = np.zeros(library.shape[1], dtype=bool), [], []
+def expected_entropy(cells: torch.Tensor, weights: torch.Tensor, n_bins: int, n_classes: int) -> torch.Tensor:
+    """(Q, C) the class entropy left after reading each candidate, expected over each episode's weighting of the
+    library (Q, L): the weights fall into (reading, class) cells per candidate."""
+    mass = (cells @ weights.T).T.reshape(len(weights), -1, n_bins, n_classes)
+    per_bin = mass.sum(-1, keepdim=True)
+    p = mass / per_bin.clamp(min=1e-30)
+    entropy = -(p * torch.log(p.clamp(min=1e-30))).sum(-1)
+    return (per_bin[..., 0] * entropy).sum(-1) / weights.sum(-1, keepdim=True)
+
+
+def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tensor, labels: torch.Tensor,
+                   n_probes: int, n_bins: int, n_classes: int, sigma: float, mismatch: float,
+                   fixed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(Q, N) candidates probed in each episode (its readings of every candidate: `query`, (Q, C)) and the class
+    named after each probe: the planner's choices, or the `fixed` sequence. library: (C, L) readings."""
+    log_w = torch.zeros(len(query), library.shape[1])
+    used = torch.zeros(query.shape, dtype=torch.bool)
+    rows, chosen, named = torch.arange(len(query)), [], []
+    one_hot = torch.nn.functional.one_hot(labels, n_classes).float()
     for k in range(n_probes):
         if fixed is not None:
-            c = int(fixed[k])
-        elif k == 0:
-            c = first
+            c = torch.full((len(query),), int(fixed[k]))
         else:
-            score = expected_entropy(bins[alive], labels[alive], np.exp(log_w - log_w.max()), n_bins, n_classes)
-            score[used] = np.inf  # in ideal mode a repeated probe reads the same
-            c = int(score.argmin())
-        used[c] = True
+            score = expected_entropy(cells, torch.exp(log_w - log_w.max(1, keepdim=True).values), n_bins, n_classes)
+            c = score.masked_fill(used, math.inf).argmin(1)  # in ideal mode a repeated probe reads the same
+        used[rows, c] = True
         chosen.append(c)
-        log_w = log_w + log_likelihood(float(query[c]), library[alive, c], sigma, mismatch)
-        keep = log_w >= log_w.max() - PRUNE
-        alive, log_w = alive[keep], log_w[keep]
-        named.append(int(np.bincount(labels[alive], np.exp(log_w - log_w.max()), minlength=n_classes).argmax()))
-    return chosen, named
+        log_w = log_w + log_likelihood(query[rows, c][:, None], library[c], sigma, mismatch)
+        named.append((torch.exp(log_w - log_w.max(1, keepdim=True).values) @ one_hot).argmax(1))
+    return torch.stack(chosen, 1).numpy(), torch.stack(named, 1).numpy()
 
 
 def summary(chosen: np.ndarray, named: np.ndarray, labels: np.ndarray, query: np.ndarray, candidates: np.ndarray,
@@ -170,6 +176,7 @@ def main() -> None:
     if args.n_probes > len(candidates):
         parser.error(f"--n-probes {args.n_probes}: more than the {len(candidates)} candidates")
 
+    torch.set_num_threads(1)
     start = time.time()
     sim = ProbeSimulator("hg4", batch_size=1024, mode="ideal", seed=args.seed)
     regions, n_classes = PoseRegions(sim.scene), len(sim.classes)
@@ -193,16 +200,18 @@ def main() -> None:
           f"{args.episodes} {args.split} episodes ({args.mode} mode): probed in {time.time() - start:.0f} s", flush=True)
     n_bins = int(np.ceil(sim.scene.probe_length / args.bin)) + 2
     bins = np.where(library == MISS, 0, 1 + np.minimum(library / args.bin, n_bins - 2)).astype(np.int64)
-    first = int(expected_entropy(bins, labels, np.ones(len(labels)), n_bins, n_classes).argmin())
+    cells = cell_matrix(bins, labels, n_bins, n_classes)
+    library_t, labels_t, query_t = torch.from_numpy(library.T.copy()), torch.from_numpy(labels), torch.from_numpy(query)
     offsets = query_poses[:, 0] - sim.scene.probe_x
     order = np.argsort(np.abs(np.linspace(-args.span, args.span, args.places)), kind="stable")
     runs = {"planner": None} | ({"fixed": order * (1 + 2 * len(args.leans))} if args.fixed else {})
     results = {}
     for name, fixed in runs.items():
         start = time.time()
-        chosen, named = zip(*(probe_episode(q, library, bins, labels, args.n_probes, n_bins, n_classes, args.sigma,
-                                            args.mismatch, first, fixed) for q in query))
-        r = results[name] = summary(np.array(chosen), np.array(named), query_labels, query, candidates, offsets, sim)
+        chosen, named = map(np.concatenate, zip(*(
+            probe_episodes(query_t[i:i + CHUNK], library_t, cells, labels_t, args.n_probes, n_bins, n_classes,
+                           args.sigma, args.mismatch, fixed) for i in range(0, len(query), CHUNK))))
+        r = results[name] = summary(chosen, named, query_labels, query, candidates, offsets, sim)
         print(f"{name}: accuracy after each probe " + " ".join(f"{a:.3f}" for a in r["accuracy"])
               + f"; {r['touches']:.2f} touches ({r['touches_first_half']:.2f} in the first half), tilt "
               f"{r['tilt_deg']:.1f} deg, {r['places']:.1f} places ({time.time() - start:.0f} s)", flush=True)

@@ -301,21 +301,23 @@ def test_learned_policy_is_read_against_the_scan_it_started_from():
 
 def test_planner_probes_where_the_reading_tells_the_class_and_runs_on_real_probes():
     planner = script("planner_ceiling")
-    labels = torch.arange(400).remainder(2).numpy()
+    labels = torch.arange(400).remainder(2)
     # candidate 0 reads the same for every class, candidate 1 touches class 1 only, candidate 2 at random
-    library = np.stack([np.full(400, 0.1), np.where(labels == 1, 0.2, planner.MISS),
-                        np.random.default_rng(0).uniform(0, 0.5, 400)], 1).astype(np.float32)
-    bins = np.where(library == planner.MISS, 0, 1 + library / 0.05).astype(np.int64)
-    entropy = planner.expected_entropy(bins, labels, np.ones(400), 12, 2)
+    library = torch.stack([torch.full((400,), 0.1), torch.where(labels == 1, 0.2, planner.MISS),
+                           torch.rand(400, generator=torch.Generator().manual_seed(0)) * 0.5], 1)
+    bins = torch.where(library == planner.MISS, 0, 1 + (library / 0.05).long()).numpy()
+    cells = planner.cell_matrix(bins, labels.numpy(), 12, 2)
+    entropy = planner.expected_entropy(cells, torch.ones(1, 400), 12, 2)[0]
     assert entropy.argmin() == 1 and entropy[1] == pytest.approx(0.0) and entropy[0] == pytest.approx(np.log(2))
-    for query, label in ((np.array([0.1, 0.2, 0.3]), 1), (np.array([0.1, planner.MISS, 0.3]), 0)):
-        chosen, named = planner.probe_episode(query, library, bins, labels, 2, 12, 2, 0.005, 1e-3, first=0)
-        assert chosen == [0, 1] and named[1] == label  # the uninformative first probe, then the telling one
-        fixed, _ = planner.probe_episode(query, library, bins, labels, 2, 12, 2, 0.005, 1e-3, first=0,
-                                         fixed=np.array([2, 0]))
-        assert fixed == [2, 0]
-    assert planner.log_likelihood(0.2, np.array([0.2, 0.21, planner.MISS]), 0.01, 1e-3) == pytest.approx(
-        [0.0, -0.5, np.log(1e-3)])
+    queries = torch.tensor([[0.1, 0.2, 0.3], [0.1, planner.MISS, 0.3]])
+    chosen, named = planner.probe_episodes(queries, library.T, cells, labels, 2, 12, 2, 0.005, 1e-3)
+    assert chosen[:, 0].tolist() == [1, 1] and named[:, 0].tolist() == [1, 0]  # the telling probe first
+    assert (chosen[:, 1] != 1).all()  # never twice
+    fixed, named = planner.probe_episodes(queries, library.T, cells, labels, 2, 12, 2, 0.005, 1e-3,
+                                          fixed=np.array([0, 2]))
+    assert fixed.tolist() == [[0, 2], [0, 2]] and named[:, 0].tolist() == [0, 0]  # ties: the first class
+    ll = planner.log_likelihood(torch.tensor([[0.2]]), torch.tensor([[0.2, 0.21, planner.MISS]]), 0.01, 1e-3)
+    assert ll[0].tolist() == pytest.approx([0.0, -0.5, np.log(1e-3)], rel=1e-4)
     real = run("planner_ceiling", "--episodes", "16", "--library", "2048", "--n-probes", "3", "--places", "3",
                "--leans", "1.0", "--fixed")
     assert real.returncode == 0, real.stderr[-2000:]
