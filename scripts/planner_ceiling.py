@@ -71,6 +71,31 @@ def readings(sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray, candida
     return out
 
 
+def library_readings(sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray, places: int, span: float,
+                     leans: list[float], shifts: int, mirror: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(L', C) readings of the candidates and (L',) classes of the library: its episodes as drawn, and with `shifts`
+    also moved along the line by 1..shifts place steps each way (kept where the object stays in the pose range),
+    and with `mirror` mirrored across the line too. The ground is alike all along the line, so an object moved one
+    step reads at each place what it read one place back; and hg4's shapes are mirror-symmetric, so the mirror image
+    of an episode is an episode whose leaning probes swap sides. Symmetries of the world, not poses of another split:
+    with them a training library reaches positions its split never holds (the held-out cells)."""
+    step = 2 * span / (places - 1) if places > 1 else 0.0
+    n_directions = 1 + 2 * len(leans)
+    wide = candidate_requests(places + 2 * shifts, span + shifts * step, leans)  # the same places, `shifts` more each way
+    full = readings(sim, labels, poses, wide).reshape(len(labels), places + 2 * shifts, n_directions)
+    metres = step * 0.5 * (sim.scene.probe_y[1] - sim.scene.probe_y[0])  # one place step along the line
+    swap = [0] + [i + (1 if i % 2 else -1) for i in range(1, n_directions)]  # +x and -x of each lean trade places
+    parts, part_labels = [], []
+    for j in range(-shifts, shifts + 1):  # the object moved j steps: it reads at place p what it read at p - j
+        y = poses[:, 1] + j * metres
+        keep = (y >= sim.scene.object_y[0]) & (y <= sim.scene.object_y[1])
+        view = full[keep, shifts - j:shifts - j + places]
+        for directions in ([slice(None)] + [swap] * mirror):
+            parts.append(view[..., directions].reshape(int(keep.sum()), -1))
+            part_labels.append(labels[keep])
+    return np.concatenate(parts), np.concatenate(part_labels)
+
+
 def log_likelihood(readings: torch.Tensor, library: torch.Tensor, sigma: float, mismatch: float) -> torch.Tensor:
     """log p(each episode's reading (Q, 1) | each library episode's reading (Q, L)), up to a constant: a Gaussian in
     the touch's distance along the ray, log(mismatch) where one touched and the other did not."""
@@ -152,6 +177,9 @@ def main() -> None:
                         help="how the scored episodes are probed (the library always in ideal mode)")
     parser.add_argument("--library", type=int, default=262144, help="library episodes, each probed with every candidate")
     parser.add_argument("--library-split", choices=SPLITS, default="val")
+    parser.add_argument("--shifts", type=int, default=0,
+                        help="also the library's episodes moved along the line by up to this many place steps each way")
+    parser.add_argument("--mirror", action="store_true", help="also the library's episodes mirrored across the line")
     parser.add_argument("--n-probes", type=int, default=10)
     parser.add_argument("--places", type=int, default=11, help="candidate places along the line")
     parser.add_argument("--span", type=float, default=0.5, help="the middle of the line they cover (request units)")
@@ -168,6 +196,9 @@ def main() -> None:
             parser.error(f"--{name.replace('_', '-')} {getattr(args, name)}: must be >= 1")
     if not 0 < args.span <= 1:
         parser.error(f"--span {args.span}: must be in (0, 1]")
+    if args.shifts < 0 or (args.shifts and (args.places < 2 or args.span * (1 + 2 * args.shifts / (args.places - 1)) > 1)):
+        parser.error(f"--shifts {args.shifts}: must be >= 0, with --places >= 2, and keep the library's places on the "
+                     "line (--span + shifts * place step <= 1)")
     if any(not 0 < lean <= 2 for lean in args.leans):
         parser.error(f"--leans {args.leans}: each must be in (0, 2] (uz = 1 - lean stays in [-1, 1])")
     if args.sigma <= 0 or args.bin <= 0 or not 0 < args.mismatch < 1:
@@ -190,13 +221,15 @@ def main() -> None:
                                                     np.random.default_rng(args.seed))
     labels, poses = sample_episodes(regions, args.library_split, args.library, n_classes,
                                     np.random.default_rng(args.seed + 1))
-    library = readings(sim, labels, poses, candidates)
+    library, labels = library_readings(sim, labels, poses, args.places, args.span, args.leans, args.shifts,
+                                       args.mirror)
     if args.mode == "arm":  # the arm's achieved probes stray from the requested ones the library was read with
         with ProbeSimulator("hg4", batch_size=256, mode="arm", seed=args.seed) as arm:
             query = readings(arm, query_labels, query_poses, candidates)
     else:
         query = readings(sim, query_labels, query_poses, candidates)
-    print(f"{len(candidates)} candidates x {args.library} {args.library_split} library episodes, "
+    print(f"{len(candidates)} candidates x {args.library} {args.library_split} library episodes "
+          f"({len(library)} with their shifts and mirror images), "
           f"{args.episodes} {args.split} episodes ({args.mode} mode): probed in {time.time() - start:.0f} s", flush=True)
     n_bins = int(np.ceil(sim.scene.probe_length / args.bin)) + 2
     bins = np.where(library == MISS, 0, 1 + np.minimum(library / args.bin, n_bins - 2)).astype(np.int64)
@@ -217,6 +250,7 @@ def main() -> None:
               f"{r['tilt_deg']:.1f} deg, {r['places']:.1f} places ({time.time() - start:.0f} s)", flush=True)
     sim.close()
     print(json.dumps(results | {"library": args.library, "library_split": args.library_split,
+                                "shifts": args.shifts, "mirror": args.mirror, "library_episodes": len(library),
                                 "episodes": args.episodes, "split": args.split, "mode": args.mode,
                                 "table_episodes": args.table_episodes, "candidates": len(candidates)}))
 
