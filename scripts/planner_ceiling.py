@@ -25,8 +25,8 @@ read the chosen one), and `--table-episodes` scores the very episodes the tables
         --mode arm                                                       # ... on Table 1's own test episodes
 
 Last line: JSON {"planner" [and "fixed"]: {"accuracy": [after probe 1, ..., N], "touches": .., "touches_first_half":
-.., "tilt_deg": .., "leaning_towards_object": .., "places": ..}, "library": .., "library_split": .., "episodes": ..,
-"split": .., "candidates": ..}.
+.., "tilt_deg": .., "leaning_towards_object": .., "places": ..}, "library": .., "library_split": .., "shifts": ..,
+"mirror": .., "library_episodes": .., "episodes": .., "split": .., "mode": .., "table_episodes": .., "candidates": ..}.
 """
 from __future__ import annotations
 
@@ -132,6 +132,7 @@ def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tens
     """(Q, N) candidates probed in each episode (its readings of every candidate: `query`, (Q, C)) and the class
     named after each probe: the planner's choices, or the `fixed` sequence. library: (C, L) readings."""
     log_w = torch.zeros(len(query), library.shape[1])
+    weights = torch.ones_like(log_w)  # exp(log_w) relative to each episode's most likely library episode
     used = torch.zeros(query.shape, dtype=torch.bool)
     rows, chosen, named = torch.arange(len(query)), [], []
     one_hot = torch.nn.functional.one_hot(labels, n_classes).float()
@@ -139,12 +140,13 @@ def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tens
         if fixed is not None:
             c = torch.full((len(query),), int(fixed[k]))
         else:
-            score = expected_entropy(cells, torch.exp(log_w - log_w.max(1, keepdim=True).values), n_bins, n_classes)
+            score = expected_entropy(cells, weights, n_bins, n_classes)
             c = score.masked_fill(used, math.inf).argmin(1)  # in ideal mode a repeated probe reads the same
         used[rows, c] = True
         chosen.append(c)
         log_w = log_w + log_likelihood(query[rows, c][:, None], library[c], sigma, mismatch)
-        named.append((torch.exp(log_w - log_w.max(1, keepdim=True).values) @ one_hot).argmax(1))
+        weights = torch.exp(log_w - log_w.max(1, keepdim=True).values)
+        named.append((weights @ one_hot).argmax(1))
     return torch.stack(chosen, 1).numpy(), torch.stack(named, 1).numpy()
 
 
