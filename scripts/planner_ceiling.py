@@ -19,10 +19,16 @@ planner against the scans' ceilings. The library is read in ideal mode; `--mode 
 the arm, whose achieved probes stray from the requested ones (every candidate is read up front, as the arm would
 read the chosen one), and `--table-episodes` scores the very episodes the tables score. Minutes on one core.
 
+`--save-rollouts FILE` keeps the planner's episodes (classes, poses, the requests it chose) as a teacher for a policy
+to copy (model.imitate, docs/training.md); the file records the splits and seeds, so a model can refuse a teacher
+whose episodes are not training episodes.
+
     .venv/bin/python scripts/planner_ceiling.py                          # 1024 val episodes, library of 262144
     .venv/bin/python scripts/planner_ceiling.py --library-split train    # a planner that never saw the val poses
     .venv/bin/python scripts/planner_ceiling.py --library-split train --split test --episodes 2048 --table-episodes \
         --mode arm                                                       # ... on Table 1's own test episodes
+    .venv/bin/python scripts/planner_ceiling.py --library-split train --split train --library 32768 --shifts 5 \
+        --mirror --episodes 3072 --seed 10 --save-rollouts data/planner/train_s10.npz   # a teacher (model.imitate)
 
 Last line: JSON {"planner" [and "fixed"]: {"accuracy": [after probe 1, ..., N], "touches": .., "touches_first_half":
 .., "tilt_deg": .., "leaning_towards_object": .., "places": ..}, "library": .., "library_split": .., "shifts": ..,
@@ -44,6 +50,8 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from hg.atomic import write_atomic  # noqa: E402
+from hg.provenance import commit  # noqa: E402
 from hg.sim import SPLITS, PoseRegions, ProbeSimulator, sample_episodes  # noqa: E402
 
 MISS = -1.0  # the reading of a probe that touched nothing
@@ -168,6 +176,18 @@ def summary(chosen: np.ndarray, named: np.ndarray, labels: np.ndarray, query: np
             "places": round(float(np.mean([len(set(requests[i, :, 0])) for i in range(len(requests))])), 2)}
 
 
+def save_rollouts(path: Path, labels: np.ndarray, poses: np.ndarray, requests: np.ndarray, meta: dict) -> None:
+    """Write the planner's episodes, (E,) classes, (E, P) poses and (E, N, 4) requests, with `meta` (the run's
+    arguments and summary, the objects, the pose regions' seed and the commit) as JSON, in one atomic write."""
+    import io
+    meta = {k: str(v) if isinstance(v, Path) else v for k, v in meta.items()}
+    meta |= {"objects": "hg4", "eval_seed": 0, "commit": commit(("hg", "scripts"))}
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, labels=labels, poses=poses, requests=requests.astype(np.float32),
+                        meta=np.array(json.dumps(meta)))
+    write_atomic(path, buffer.getvalue())
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", type=int, default=1024)
@@ -192,6 +212,7 @@ def main() -> None:
     parser.add_argument("--bin", type=float, default=0.01, help="reading bins for the planner's entropy (m)")
     parser.add_argument("--fixed", action="store_true", help="also score the straight centre-out scan")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--save-rollouts", type=Path, help="write the planner's episodes here (.npz): a teacher")
     args = parser.parse_args()
     for name in ("episodes", "library", "n_probes", "places"):
         if getattr(args, name) < 1:
@@ -247,6 +268,8 @@ def main() -> None:
             probe_episodes(query_t[i:i + CHUNK], library_t, cells, labels_t, args.n_probes, n_bins, n_classes,
                            args.sigma, args.mismatch, fixed) for i in range(0, len(query), CHUNK))))
         r = results[name] = summary(chosen, named, query_labels, query, candidates, offsets, sim)
+        if name == "planner" and args.save_rollouts:
+            save_rollouts(args.save_rollouts, query_labels, query_poses, candidates[chosen], vars(args) | {"summary": r})
         print(f"{name}: accuracy after each probe " + " ".join(f"{a:.3f}" for a in r["accuracy"])
               + f"; {r['touches']:.2f} touches ({r['touches_first_half']:.2f} in the first half), tilt "
               f"{r['tilt_deg']:.1f} deg, {r['places']:.1f} places ({time.time() - start:.0f} s)", flush=True)
