@@ -112,6 +112,56 @@ def test_policy_warmup_trains_the_classifier_on_the_scan_and_leaves_the_policy_a
         HapticGlance(policy_warmup_steps=-1)
 
 
+@pytest.fixture(scope="module")
+def teacher(tmp_path_factory):
+    """A real planner's 4-probe episodes of training poses (scripts/planner_ceiling.py with a tiny library)."""
+    path = tmp_path_factory.mktemp("teacher") / "teacher.npz"
+    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "planner_ceiling.py"), "--library-split", "train",
+                           "--split", "train", "--library", "256", "--episodes", "32", "--n-probes", "4",
+                           "--save-rollouts", str(path)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return path
+
+
+def test_imitation_warmup_probes_where_the_teacher_chose_and_copies_its_requests(data, teacher):
+    model = make_model(data, policy_warmup_steps=30, imitate=(str(teacher),))
+    losses = []
+
+    class Record(pl.Callback):
+        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+            losses.append(float(trainer.callback_metrics["train/loss_imitation"]))
+
+    trainer = pl.Trainer(max_steps=30, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                         enable_model_summary=False, limit_val_batches=0, accelerator="cpu", callbacks=[Record()])
+    trainer.fit(model, datamodule=data)
+    assert len(losses) == 30 and np.mean(losses[-5:]) < 0.8 * np.mean(losses[:5])  # the mean moves to the teacher
+    episodes = model.teacher
+    assert len(episodes["labels"]) == 32 and (data.regions.split_of(episodes["poses"].numpy()) == 0).all()
+    model.sim = data.make_simulator()  # fit's teardown closed the model's own
+    labels, poses, requests = episodes["labels"][:8], episodes["poses"][:8], episodes["requests"][:8]
+    rollout = model.rollout(labels, poses, 0, requests=requests)
+    torch.testing.assert_close(rollout.requests, requests.clamp(-1, 1))
+    terms, _ = model.evaluate(rollout, labels, learn_policy="imitate")
+    assert "loss_policy" not in terms
+    torch.testing.assert_close(terms["loss"], terms["loss_ce"] + terms["loss_imitation"])
+    model.sim.close()
+
+
+def test_a_teacher_with_held_out_poses_or_no_warmup_is_refused(data, teacher, tmp_path):
+    with np.load(teacher) as f:
+        episodes = dict(f)
+    episodes["poses"] = data.regions.sample("test", len(episodes["poses"]), np.random.default_rng(0))
+    leaking = tmp_path / "leaking.npz"
+    np.savez(leaking, **episodes)
+    model = make_model(data, policy_warmup_steps=2, imitate=(str(leaking),))
+    trainer = pl.Trainer(max_steps=2, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                         enable_model_summary=False, limit_val_batches=0, accelerator="cpu")
+    with pytest.raises(ValueError, match=f"{leaking}: 32 of 32 poses lie outside the training region"):
+        trainer.fit(model, datamodule=data)
+    with pytest.raises(ValueError, match="model.imitate=.*needs model.policy: learned, model.policy_warmup_steps > 0"):
+        HapticGlance(imitate=(str(teacher),))
+
+
 def test_std_schedule_shrinks_the_policy_std_and_travels_with_the_checkpoint(data, tmp_path):
     model = make_model(data, prior="line_scan", std_final_scale=0.1)
     trainer = pl.Trainer(max_steps=4, logger=False, enable_checkpointing=False, enable_progress_bar=False,

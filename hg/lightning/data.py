@@ -7,6 +7,7 @@ resume exactly, and `hg test` gives the same numbers twice.
 """
 from __future__ import annotations
 
+import json
 from dataclasses import asdict
 from pathlib import Path
 
@@ -26,6 +27,35 @@ def episode_batch(regions: PoseRegions, split: str, size: int, n_classes: int, s
     labels, poses = sample_episodes(regions, split, size, n_classes, rng)
     return {"labels": torch.from_numpy(labels), "poses": torch.from_numpy(poses),
             "seed": torch.tensor(int(rng.integers(2 ** 31)))}
+
+
+def load_teacher(paths: list[str], regions: PoseRegions, objects: str, n_probes: int) -> Batch:
+    """A teacher's episodes for a policy to copy (model.imitate): the classes, poses and requests of the files that
+    `scripts/planner_ceiling.py --save-rollouts` writes, concatenated. Refuses a file made for other objects, another
+    probe count, or other pose regions, and any episode whose pose lies outside the training region: a teacher's
+    episodes are training data, and held-out poses must not leak into them."""
+    parts = []
+    for path in paths:
+        if not Path(path).is_file():
+            raise FileNotFoundError(f"model.imitate: {path}: teacher file not found (write one with "
+                                    "scripts/planner_ceiling.py --save-rollouts)")
+        with np.load(path) as f:
+            missing = {"labels", "poses", "requests", "meta"} - set(f.files)
+            if missing:
+                raise ValueError(f"model.imitate: {path}: not a teacher file, no {sorted(missing)}")
+            labels, poses, requests, meta = f["labels"], f["poses"], f["requests"], json.loads(str(f["meta"]))
+        for field, want in (("objects", objects), ("eval_seed", regions.seed)):
+            if meta.get(field) != want:
+                raise ValueError(f"model.imitate: {path}: meta {field}={meta.get(field)!r}, this run has {want!r}")
+        if requests.ndim != 3 or requests.shape[1:] != (n_probes, 4) or not len(labels) == len(poses) == len(requests):
+            raise ValueError(f"model.imitate: {path}: requests of shape {requests.shape} for {len(labels)} episodes, "
+                             f"expected ({len(labels)}, {n_probes}, 4) (data.n_probes={n_probes})")
+        if (outside := int((regions.split_of(poses) != SPLITS.index("train")).sum())):
+            raise ValueError(f"model.imitate: {path}: {outside} of {len(poses)} poses lie outside the training region")
+        parts.append((labels, poses, requests))
+    labels, poses, requests = (np.concatenate(x) for x in zip(*parts))
+    return {"labels": torch.from_numpy(labels).long(), "poses": torch.from_numpy(poses),
+            "requests": torch.from_numpy(requests).float()}
 
 
 class TrainEpisodes(IterableDataset):

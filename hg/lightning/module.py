@@ -10,6 +10,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from hg.lightning.data import load_teacher
 from hg.nets import (PCRN, Baseline, FCClassifier, LinearClassifier, LocationNetwork, LSTMEncoder, NClassClassifier,
                      TouchSetClassifier, left_of_line, reflect)
 from hg.sim import ProbeSimulator
@@ -134,7 +135,7 @@ class HapticGlance(pl.LightningModule):
                  policy_warmup_steps: int = 0, std_final_scale: float = 1.0, lr_final_scale: float = 1.0,
                  ce_prefixes: Literal["all", "last"] = "all", final_touch_set: bool = False,
                  touch_set_miss_frame: Literal["touches", "line"] = "touches", touch_set_mirror: bool = False,
-                 mirror_encoder: bool = False) -> None:
+                 mirror_encoder: bool = False, imitate: tuple[str, ...] = ()) -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -269,6 +270,12 @@ class HapticGlance(pl.LightningModule):
         if prior_anchor_free and not prior_anchor:
             raise ValueError(f"model.prior_anchor_free={list(prior_anchor_free)}: frees components of the anchor, so it "
                              "needs model.prior_anchor > 0")
+        if imitate and not (policy == "learned" and policy_warmup_steps and prior == "none"):
+            raise ValueError(f"model.imitate={list(imitate)}: a teacher replaces the fixed scan of the warm-up as the "
+                             "policy's starting point, so it needs model.policy: learned, model.policy_warmup_steps > 0 "
+                             f"and model.prior: none, got policy={policy!r}, policy_warmup_steps={policy_warmup_steps}, "
+                             f"prior={prior!r}")
+        self.teacher: dict[str, Tensor] | None = None  # its episodes, loaded in setup() (they must match the data)
         if unknown := set(prior_anchor_free) - set(COMPONENTS):
             raise ValueError(f"model.prior_anchor_free: {sorted(unknown)} not among the request's components "
                              f"{list(COMPONENTS)}")
@@ -298,8 +305,12 @@ class HapticGlance(pl.LightningModule):
                 net.line_x = line_x
 
     def setup(self, stage: str) -> None:
+        data = self.trainer.datamodule
         if self.sim is None:
-            self.sim = self.trainer.datamodule.make_simulator()
+            self.sim = data.make_simulator()
+        if self.hparams.imitate and stage == "fit" and self.teacher is None:
+            self.teacher = load_teacher(list(self.hparams.imitate), data.regions, data.object_set.name,
+                                        self.hparams.n_probes)
 
     def teardown(self, stage: str) -> None:
         if self.sim is not None:
@@ -477,9 +488,10 @@ class HapticGlance(pl.LightningModule):
 
     @torch.no_grad()
     def rollout(self, labels: Tensor, poses: Tensor, seed: int, deterministic: bool | Tensor = False,
-                follow_scan: bool = False) -> Rollout:
-        """Probe B episodes N times with the current policy (or the fixed scan: follow_scan); the batch seed drives
-        sampling and sensor noise. deterministic: the mean action, in every episode or in the (B,) True ones."""
+                follow_scan: bool = False, requests: Tensor | None = None) -> Rollout:
+        """Probe B episodes N times with the current policy (or the fixed scan: follow_scan, or the given (B, N, 4)
+        requests: a teacher's); the batch seed drives sampling and sensor noise. deterministic: the mean action, in
+        every episode or in the (B,) True ones."""
         sim, n = self.sim, self.hparams.n_probes
         batch = len(labels)
         sim.reset(labels.cpu().numpy(), poses.cpu().numpy(), seed=seed)
@@ -488,7 +500,8 @@ class HapticGlance(pl.LightningModule):
         reached = torch.ones(batch, n, dtype=torch.bool)
         memory = rep_sum = None  # the encoder's memory of the probes so far, and the sum of its outputs
         for k in range(n):
-            action = self.next_actions(k, points, rep_sum, deterministic, generator, follow_scan).cpu()
+            action = (requests[:, k] if requests is not None
+                      else self.next_actions(k, points, rep_sum, deterministic, generator, follow_scan)).cpu()
             if not torch.isfinite(action).all():
                 raise FloatingPointError(f"non-finite probe request from the '{self.hparams.policy}' policy at probe "
                                          f"{k + 1}, global step {self.global_step}")
@@ -498,7 +511,7 @@ class HapticGlance(pl.LightningModule):
             points[:, k, :3] *= self.hparams.point_scale  # the policy must see what evaluate() will see
             if sim.arm is not None:
                 reached[:, k] = torch.from_numpy(achieved(result.pose_error))
-            if self.hparams.policy == "learned" and not follow_scan and k + 1 < n:  # each probe is encoded once
+            if self.hparams.policy == "learned" and not follow_scan and requests is None and k + 1 < n:  # once
                 # (evaluate() redoes the whole sequence with gradients); the last one is never read by the policy
                 views = self.encoder_views(action.clamp(-1, 1).to(self.device),
                                            self.encoder_points(points[:, :k + 1])[:, k].to(self.device))
@@ -546,10 +559,13 @@ class HapticGlance(pl.LightningModule):
         return torch.stack([self.encoder(r, p) for r, p in views])
 
     # -- loss ----------------------------------------------------------------------------------------
-    def evaluate(self, rollout: Rollout, labels: Tensor, learn_policy: bool = True,
+    def evaluate(self, rollout: Rollout, labels: Tensor, learn_policy: bool | Literal["imitate"] = True,
                  sampled: Tensor | None = None) -> tuple[dict[str, Tensor], Tensor]:
         """Forward pass over a finished rollout: the loss terms (without the policy's when not learn_policy) and
-        the logits (B, N, C). sampled (B,) bool: the episodes that train the policy (default: all)."""
+        the logits (B, N, C). sampled (B,) bool: the episodes that train the policy (default: all). "imitate": the
+        rollout's requests are a teacher's, and the policy's mean learns to copy them instead of learning by
+        REINFORCE: by their squared distance, whose gradient stays on the cross-entropy's scale, where their
+        log-likelihood under the narrow std would crowd the classifier out of the clipped gradient."""
         logits = pooled = rep = None
         if self.classifier is not None:  # (else the policy is fixed and nothing reads the encoder)
             rep = self.encode(rollout)
@@ -572,15 +588,20 @@ class HapticGlance(pl.LightningModule):
             states = self.policy_states(rep.detach() if self.hparams.policy_reads_detached else rep, mirrored, extra)
             offsets = self.prior_offsets(rollout.points)
             offsets = None if offsets is None else reflect(offsets, 1, where=mirrored)
-            log_pi, mu, sigma = self.location.log_prob_and_moments(states, reflect(rollout.actions, 1, where=mirrored),
-                                                                   offsets)
+            actions = reflect(rollout.actions, 1, where=mirrored)  # in the view the policy drew them in
+            log_pi, mu, sigma = self.location.log_prob_and_moments(states, actions, offsets)
             baseline = self.baseline(states.detach())
         h = self.hparams
         # the gradient of log N grows as 1 / std: a shrinking std must not let the policy term crowd the others
         # out of the clipped gradient
         beta = h.beta * float(self.location.std_scale)
-        terms = hybrid_loss(logits, labels, log_pi, baseline, h.gamma, beta, h.normalize_advantage, h.reward, sampled,
-                            h.ce_prefixes)
+        if learn_policy == "imitate":
+            terms = hybrid_loss(logits, labels, None, None, h.gamma, beta, ce_prefixes=h.ce_prefixes)
+            terms["loss_imitation"] = (mu - actions.clamp(-1, 1)).pow(2).sum(-1).mean()
+            terms["loss"] = terms["loss"] + terms["loss_imitation"]
+        else:
+            terms = hybrid_loss(logits, labels, log_pi, baseline, h.gamma, beta, h.normalize_advantage, h.reward,
+                                sampled, h.ce_prefixes)
         if log_pi is not None:
             sigma = sigma.detach().mean((0, 1))  # too large a std is the usual cause of poor accuracy: watch it
             terms.update({f"std_{c}": sigma[i] for i, c in enumerate(COMPONENTS)})
@@ -608,9 +629,14 @@ class HapticGlance(pl.LightningModule):
         if self.hparams.policy == "learned" and not warming_up and self.hparams.mean_action_share:
             n_mean = min(round(self.hparams.mean_action_share * len(labels)), len(labels) - 1)  # >= 1 sampled
             mean_rows = torch.arange(len(labels)) < n_mean
-        rollout = self.rollout(labels, batch["poses"], int(batch["seed"]), follow_scan=warming_up,
-                               deterministic=False if mean_rows is None else mean_rows)
-        terms, _ = self.evaluate(rollout, labels, learn_policy=not warming_up,
+        poses, requests, learn_policy = batch["poses"], None, not warming_up
+        if warming_up and self.teacher is not None:  # the teacher's episodes in turn, with the requests it chose
+            rows = (self.global_step * len(labels) + torch.arange(len(labels))) % len(self.teacher["labels"])
+            labels, poses, requests = (self.teacher[k][rows].to(labels.device) for k in ("labels", "poses", "requests"))
+            learn_policy = "imitate"
+        rollout = self.rollout(labels, poses, int(batch["seed"]), follow_scan=warming_up and requests is None,
+                               deterministic=False if mean_rows is None else mean_rows, requests=requests)
+        terms, _ = self.evaluate(rollout, labels, learn_policy=learn_policy,
                                  sampled=None if mean_rows is None else ~mean_rows.to(labels.device))
         if not torch.isfinite(terms["loss"]):
             raise FloatingPointError(f"non-finite loss {terms['loss'].item()} at global step {self.global_step} "
