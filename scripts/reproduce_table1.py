@@ -43,6 +43,7 @@ class Row:
     paper: str | None = None  # the paper's column this row reproduces
     learned: bool = True
     encoder: str = "pcrn"
+    planner: tuple[str, ...] = ()  # a row that plans instead of learning: scripts/planner_ceiling.py's library arguments
 
 
 SIDE_SCAN = "side-picking scan (steep first pair) + PCRN-FC + wide touch set"
@@ -51,6 +52,8 @@ LONG_DECAY = "16000 steps, learning rate falling to 5%"
 SIDE_LEARNED = ("PCRN-FC+ from the side-picking scan (steep first pair) + wide touch set, std shrinking to a tenth, 16000 "
                 "steps with the policy from step 8000, policy starting exactly on the scan and held near it, learning "
                 f"rate falling to 5%, {FINAL_TOUCH_SET}")
+# the planner's library: training episodes with their moves along the line and mirror images (docs/training.md)
+PLANNER_LIBRARY = ("--library-split", "train", "--library", "32768", "--shifts", "5", "--mirror")
 ROWS = {
     "pcrn_fc": Row("PCRN-FC", paper="PCRN-FC"),
     "pcrn_nclass": Row("PCRN-N-class", paper="PCRN-N-class"),
@@ -192,6 +195,8 @@ ROWS = {
     "pcrn_fc_side_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final_mirror_encoder": Row(
         f"{SIDE_LEARNED}, the whole model (encoder, classifiers, policy) reading an episode and its mirror image "
         "across the line alike (beyond the paper)"),
+    "planner": Row("greedy information-gain planner over training episodes (moved along the line and mirrored), "
+                   "Bayes classifier, no learning (beyond the paper)", learned=False, planner=PLANNER_LIBRARY),
     "pcrn_fc_imitate_planner_final_mirror": Row(
         "PCRN-FC+ copying the greedy planner for 8000 steps, then the hybrid rule + wide touch set, std shrinking to a "
         f"tenth, 16000 steps, learning rate falling to 5%, {FINAL_TOUCH_SET}, both touch sets reading an episode and "
@@ -211,8 +216,8 @@ ROWS = {
 
 
 def config_of(row: str) -> str:
-    """The config that trains `row`, relative to the repository root."""
-    return f"configs/{row}.yaml"
+    """The config that trains `row` (the script that plans, for a planner row), relative to the repository root."""
+    return "scripts/planner_ceiling.py" if ROWS[row].planner else f"configs/{row}.yaml"
 
 
 # Table 1 of Riou et al. (ICASSP 2021): accuracy after k probes, 4 objects, held-out poses (no entry for k=1).
@@ -236,11 +241,35 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out_dir: Path, steps: in
 
     code_commit = commit()  # the code this run trains with, read before it starts
     name = run_name(row, seed)
-    facts = fit_and_test(ROOT / config_of(row), seed, runs_dir / name, eval_seed=EVAL_SEED,
-                         test_episodes=test_episodes, steps=steps)
+    if ROWS[row].planner:
+        facts = plan_and_test(ROWS[row].planner, seed, test_episodes)
+    else:
+        facts = fit_and_test(ROOT / config_of(row), seed, runs_dir / name, eval_seed=EVAL_SEED,
+                             test_episodes=test_episodes, steps=steps)
     result = {"row": row, "label": ROWS[row].label, "config": config_of(row), "seed": seed, **facts,
               "parallel_jobs": jobs, "commit": code_commit, "hardware": hardware()}
     write_atomic(out_dir / "runs" / f"{name}.json", json.dumps(result, indent=1) + "\n")
+
+
+def plan_and_test(library: tuple[str, ...], seed: int, test_episodes: int) -> dict:
+    """A planner row's run: scripts/planner_ceiling.py with its `library` (drawn with `seed`) on the test episodes
+    every row meets, in arm mode; the facts fit_and_test returns, with the planner's wall time (library and
+    planning) as the training time. Nothing is learned, so there is no checkpoint and no validation score."""
+    from hg.lightning.data import ProbeDataModule
+    from hg.lightning.experiment import test_fingerprint
+
+    command = ["scripts/planner_ceiling.py", *library, "--split", "test", "--episodes", str(test_episodes),
+               "--table-episodes", "--mode", "arm", "--seed", str(seed)]
+    start = time.time()
+    proc = subprocess.run([sys.executable, *command], capture_output=True, text=True, cwd=ROOT)
+    if proc.returncode:
+        raise RuntimeError(f"{' '.join(command)} failed (exit {proc.returncode}): {proc.stderr[-2000:]}")
+    planned = json.loads(proc.stdout.strip().splitlines()[-1])["planner"]
+    data = ProbeDataModule(test_episodes=test_episodes, eval_seed=EVAL_SEED)
+    return {"command": " ".join(command), "max_steps": 0, "resumed_from_step": 0, "accuracy": planned["accuracy"],
+            "accuracy_mean_action": None, "best_val_acc": None, "best_checkpoint": None,
+            "train_wall_s": round(time.time() - start, 1), "test_wall_s": 0.0, "test_episodes": test_episodes,
+            "test_fingerprint": test_fingerprint(data), "torch_threads": 1}
 
 
 # -- merge ------------------------------------------------------------------------------------------------
@@ -262,7 +291,8 @@ def summarise(runs: dict[str, list[dict]]) -> dict[str, dict]:
     """Mean and std (over seeds, ddof=1; 0 for one seed) of the accuracy after each probe, per row."""
     table = {}
     for row, rs in runs.items():
-        entry = {"label": ROWS[row].label, "config": config_of(row), "seeds": [r["seed"] for r in rs]}
+        # a planner row names its whole command (the library's arguments), a trained row its config
+        entry = {"label": ROWS[row].label, "config": rs[0].get("command", config_of(row)), "seeds": [r["seed"] for r in rs]}
         for key in ("accuracy", "accuracy_mean_action"):
             if all(r[key] is not None for r in rs):
                 values = np.array([r[key] for r in rs])
@@ -302,7 +332,7 @@ def targets(table: dict[str, dict]) -> list[str]:
         short = {k: acc[k - 1] - paper_best[k] for k in paper_best if acc[k - 1] < paper_best[k]}
         lines.append("- At every probe count at least the paper's best entry: " + (
             "met." if not short else "not met at " + ", ".join(f"{k} probes ({d:+.3f})" for k, d in short.items()) + "."))
-        for other in (row for row in table if not ROWS[row].learned):
+        for other in (row for row in table if not ROWS[row].learned and not ROWS[row].planner):  # same classifier
             gap = acc[-1] - table[other]["accuracy"][-1]
             lines.append(f"- Beats {table[other]['label']} by >= 0.15 after 10 probes: "
                          f"{'met' if gap >= 0.15 else 'not met'} ({gap:+.3f}).")

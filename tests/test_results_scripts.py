@@ -70,6 +70,26 @@ def test_every_row_is_trained_by_its_shipped_config():
     assert not missing and len(table1.ROWS) >= 5
 
 
+def test_planner_row_plans_on_the_table_s_test_episodes_and_merges_beside_the_learned_rows(tmp_path):
+    table1 = script("reproduce_table1")
+    tiny = ("--library-split", "train", "--library", "128")  # the planner row's own library is minutes to read
+    table1.ROWS["tiny_planner"] = table1.Row("tiny planner", learned=False, planner=tiny)
+    table1.train_and_test("tiny_planner", 0, tmp_path / "ckpt", tmp_path, None, 1, test_episodes=16)
+    record = json.loads((tmp_path / "runs" / "tiny_planner-seed0.json").read_text())
+    assert record["command"].startswith("scripts/planner_ceiling.py --library-split train --library 128 --split test")
+    assert len(record["accuracy"]) == 10 and all(0 <= a <= 1 for a in record["accuracy"])
+    assert record["accuracy_mean_action"] is None and record["config"] == "scripts/planner_ceiling.py"
+    fake_run(tmp_path, "pcrn_fc", 0, [0.5] * 10, fingerprint=record["test_fingerprint"])
+    fake_run(tmp_path, "random", 0, [0.3] * 10, fingerprint=record["test_fingerprint"])
+    record["test_episodes"] = 2048  # as fake_run's
+    (tmp_path / "runs" / "tiny_planner-seed0.json").write_text(json.dumps(record))
+    table1.merge(tmp_path)
+    text = (tmp_path / "table1.md").read_text()
+    assert "| tiny planner | 1 |" in text and "Beats random probes + PCRN-FC by >= 0.15 after 10 probes: met (+0.200)" in text
+    assert "| tiny planner | `scripts/planner_ceiling.py --library-split train --library 128 --split test" in text
+    assert "Beats tiny planner" not in text  # the 0.15 targets compare policies feeding one classifier
+
+
 def test_best_pcrn_variant_is_chosen_on_validation_not_test(tmp_path):
     table1 = script("reproduce_table1")
     fake_run(tmp_path, "pcrn_fc", 0, [0.9] * 10, val=0.6)  # best on test, worse on val
