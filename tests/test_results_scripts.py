@@ -369,3 +369,26 @@ def test_planner_library_shifts_and_mirror_images_read_as_moved_and_mirrored_obj
     assert (as_moved != planner.MISS).any() and (as_mirrored != planner.MISS).any()
     np.testing.assert_allclose(library[16:20], as_moved, atol=1e-4)
     np.testing.assert_allclose(library[12:16], as_mirrored, atol=1e-4)
+
+
+def test_copy_teacher_copies_a_fixed_scan_from_the_probes_and_their_index(tmp_path):
+    from hg.sim import PoseRegions, sample_episodes
+
+    fit = subprocess.run([sys.executable, "-m", "hg.lightning.cli", "fit", "--config", str(ROOT / "configs" / "tiny.yaml"),
+                          "--model.touch_set", "true", "--trainer.max_steps", "1"], capture_output=True, text=True,
+                         env=ENV, cwd=tmp_path, timeout=300)
+    assert fit.returncode == 0, fit.stderr[-2000:]
+    checkpoint = next(tmp_path.glob("runs/haptic-glance/*/checkpoints/last.ckpt"))
+    labels, poses = sample_episodes(PoseRegions(), "train", 64, 4, np.random.default_rng(0))
+    scan = np.array([[0.0, 1.0, 0.0, 0.4], [0.0, -1.0, 0.0, 0.4], [0.3, 0.0, 0.0, 1.0], [-0.3, 1.0, 0.0, 0.0]])
+    script("planner_ceiling").save_rollouts(tmp_path / "scan.npz", labels, poses, np.tile(scan, (64, 1, 1)), {})
+    proc = run("copy_teacher", "--ckpt", str(checkpoint), "--teacher", str(tmp_path / "scan.npz"),
+               "--episodes", "64", "--steps", "400")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert set(result) >= {"pcrn", "pcrn_touch_set", "points"} and result["held_out"] == 8
+    # the probes so far and their index say where a fixed scan goes next: the copy is close
+    assert max(result["points"]["own"]) < 0.1 and result["points"]["lean_side"] == 1.0, result["points"]
+    assert all(0 <= e <= 2 for state in ("pcrn", "pcrn_touch_set") for e in result[state]["own"])
+    missing = run("copy_teacher", "--ckpt", str(tmp_path / "nope.ckpt"), "--teacher", str(tmp_path / "scan.npz"))
+    assert missing.returncode != 0 and "nope.ckpt: checkpoint not found" in missing.stderr
