@@ -43,6 +43,7 @@ import sys
 import time
 import warnings
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -52,17 +53,10 @@ sys.path.insert(0, str(ROOT))
 
 from hg.atomic import write_atomic  # noqa: E402
 from hg.provenance import commit  # noqa: E402
-from hg.sim import SPLITS, PoseRegions, ProbeSimulator, sample_episodes  # noqa: E402
+from hg.sim import SPLITS, PoseRegions, ProbeSimulator, candidate_requests, sample_episodes  # noqa: E402
 
 MISS = -1.0  # the reading of a probe that touched nothing
 CHUNK = 128  # scored episodes planned side by side: their weights over the library are (CHUNK, L)
-
-
-def candidate_requests(places: int, span: float, leans: list[float]) -> np.ndarray:
-    """(C, 4) requests: every place of the scan (evenly over the middle `span` of the line) with every direction,
-    straight down first, then to +x and -x by each lean (ux = +-1, uz = 1 - lean, as model.scan_side)."""
-    directions = [(0.0, 0.0, 1.0)] + [(side, 0.0, 1.0 - lean) for lean in leans for side in (1.0, -1.0)]
-    return np.array([(py, *d) for py in np.linspace(-span, span, places) for d in directions])
 
 
 def readings(sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray, candidates: np.ndarray) -> np.ndarray:
@@ -136,17 +130,20 @@ def expected_entropy(cells: torch.Tensor, weights: torch.Tensor, n_bins: int, n_
 
 def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tensor, labels: torch.Tensor,
                    n_probes: int, n_bins: int, n_classes: int, sigma: float, mismatch: float,
-                   fixed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   choose: Callable[[int, torch.Tensor, torch.Tensor], torch.Tensor] | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """(Q, N) candidates probed in each episode (its readings of every candidate: `query`, (Q, C)) and the class
-    named after each probe: the planner's choices, or the `fixed` sequence. library: (C, L) readings."""
+    named after each probe: the planner's choices, or those of `choose(k, used, query)` -> (Q,) candidate indices
+    (a fixed sequence, or a network copying the planner), used (Q, C) bool marking the candidates probed so far.
+    library: (C, L) readings."""
     log_w = torch.zeros(len(query), library.shape[1])
     weights = torch.ones_like(log_w)  # exp(log_w) relative to each episode's most likely library episode
     used = torch.zeros(query.shape, dtype=torch.bool)
     rows, chosen, named = torch.arange(len(query)), [], []
     one_hot = torch.nn.functional.one_hot(labels, n_classes).float()
     for k in range(n_probes):
-        if fixed is not None:
-            c = torch.full((len(query),), int(fixed[k]))
+        if choose is not None:
+            c = choose(k, used, query)
         else:
             score = expected_entropy(cells, weights, n_bins, n_classes)
             c = score.masked_fill(used, math.inf).argmin(1)  # in ideal mode a repeated probe reads the same
@@ -156,6 +153,11 @@ def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tens
         weights = torch.exp(log_w - log_w.max(1, keepdim=True).values)
         named.append((weights @ one_hot).argmax(1))
     return torch.stack(chosen, 1).numpy(), torch.stack(named, 1).numpy()
+
+
+def fixed_sequence(sequence: np.ndarray) -> Callable[[int, torch.Tensor, torch.Tensor], torch.Tensor]:
+    """A `choose` for probe_episodes: candidate sequence[k] at probe k in every episode."""
+    return lambda k, used, query: torch.full((len(query),), int(sequence[k]))
 
 
 def summary(chosen: np.ndarray, named: np.ndarray, labels: np.ndarray, query: np.ndarray, candidates: np.ndarray,
@@ -260,13 +262,13 @@ def main() -> None:
     library_t, labels_t, query_t = torch.from_numpy(library.T.copy()), torch.from_numpy(labels), torch.from_numpy(query)
     offsets = query_poses[:, 0] - sim.scene.probe_x
     order = np.argsort(np.abs(np.linspace(-args.span, args.span, args.places)), kind="stable")
-    runs = {"planner": None} | ({"fixed": order * (1 + 2 * len(args.leans))} if args.fixed else {})
+    runs = {"planner": None} | ({"fixed": fixed_sequence(order * (1 + 2 * len(args.leans)))} if args.fixed else {})
     results = {}
-    for name, fixed in runs.items():
+    for name, choose in runs.items():
         start = time.time()
         chosen, named = map(np.concatenate, zip(*(
             probe_episodes(query_t[i:i + CHUNK], library_t, cells, labels_t, args.n_probes, n_bins, n_classes,
-                           args.sigma, args.mismatch, fixed) for i in range(0, len(query), CHUNK))))
+                           args.sigma, args.mismatch, choose) for i in range(0, len(query), CHUNK))))
         r = results[name] = summary(chosen, named, query_labels, query, candidates, offsets, sim)
         if name == "planner" and args.save_rollouts:
             save_rollouts(args.save_rollouts, query_labels, query_poses, candidates[chosen], vars(args) | {"summary": r})

@@ -123,8 +123,9 @@ def teacher(tmp_path_factory):
     return path
 
 
-def test_imitation_warmup_probes_where_the_teacher_chose_and_copies_its_requests(data, teacher):
-    model = make_model(data, policy_warmup_steps=30, imitate=(str(teacher),))
+@pytest.mark.parametrize("location", ["gaussian", "candidates"])
+def test_imitation_warmup_probes_where_the_teacher_chose_and_copies_its_requests(data, teacher, location):
+    model = make_model(data, policy_warmup_steps=30, imitate=(str(teacher),), location=location)
     losses = []
 
     class Record(pl.Callback):
@@ -134,7 +135,7 @@ def test_imitation_warmup_probes_where_the_teacher_chose_and_copies_its_requests
     trainer = pl.Trainer(max_steps=30, logger=False, enable_checkpointing=False, enable_progress_bar=False,
                          enable_model_summary=False, limit_val_batches=0, accelerator="cpu", callbacks=[Record()])
     trainer.fit(model, datamodule=data)
-    assert len(losses) == 30 and np.mean(losses[-5:]) < 0.8 * np.mean(losses[:5])  # the mean moves to the teacher
+    assert len(losses) == 30 and np.mean(losses[-5:]) < 0.8 * np.mean(losses[:5])  # the policy moves to the teacher
     episodes = model.teacher
     assert len(episodes["labels"]) == 32 and (data.regions.split_of(episodes["poses"].numpy()) == 0).all()
     model.sim = data.make_simulator()  # fit's teardown closed the model's own
@@ -145,6 +146,32 @@ def test_imitation_warmup_probes_where_the_teacher_chose_and_copies_its_requests
     assert "loss_policy" not in terms
     torch.testing.assert_close(terms["loss"], terms["loss_ce"] + terms["loss_imitation"])
     model.sim.close()
+
+
+def test_candidate_policy_acts_among_its_candidates_in_the_view_it_read_and_learns_by_reinforce(data):
+    """A choice among the planner's candidates (model.location: candidates): every request is a candidate, the
+    mean-action rollout took the candidate the loss pass finds most likely (in each state's view), and the hybrid
+    rule's policy term reaches the choice."""
+    model = make_model(data, location="candidates", candidate_places=5, candidate_leans=(1.0,), mirror_encoder=True)
+    candidates = model.location.candidates
+    assert candidates.shape == (15, 4)
+    batch = first_batch(data)
+    for deterministic in (False, True):
+        rollout = model.rollout(batch["labels"], batch["poses"], 1, deterministic=deterministic)
+        assert ((rollout.actions[..., None, :] - candidates).abs().amax(-1).min(-1).values < 1e-6).all()
+    mirrored = model.mirrored_states(rollout.points)
+    assert mirrored.any()  # some episodes touched to -x: their policy acted mirrored
+    states = model.policy_states(model.encode(rollout), mirrored)
+    in_view = reflect(rollout.actions, 1, where=mirrored)
+    torch.testing.assert_close(candidates[model.location.log_probs(states).argmax(-1)], in_view)
+    terms, _ = model.evaluate(model.rollout(batch["labels"], batch["poses"], 2), batch["labels"])
+    terms["loss"].backward()
+    assert terms["loss_policy"].isfinite() and model.location.net[0].weight.grad.abs().sum() > 0
+    assert 0 < terms["std_py"] < 1  # the request's spread under the choice, logged as a Gaussian's std
+    with pytest.raises(ValueError, match="model.location='candidates' .* takes no prior"):
+        HapticGlance(location="candidates", prior="line_scan")
+    with pytest.raises(ValueError, match="model.candidate_places / candidate_span / candidate_leans: .*span=1.5"):
+        HapticGlance(location="candidates", candidate_span=1.5)
 
 
 def test_a_teacher_with_held_out_poses_or_no_warmup_is_refused(data, teacher, tmp_path):
@@ -158,6 +185,10 @@ def test_a_teacher_with_held_out_poses_or_no_warmup_is_refused(data, teacher, tm
                          enable_model_summary=False, limit_val_batches=0, accelerator="cpu")
     with pytest.raises(ValueError, match=f"{leaking}: 32 of 32 poses lie outside the training region"):
         trainer.fit(model, datamodule=data)
+    other = make_model(data, policy_warmup_steps=2, imitate=(str(teacher),), location="candidates",
+                       candidate_places=5)  # not the teacher's candidates
+    with pytest.raises(ValueError, match=r"model.imitate=.*is not one of the 35 candidates \(model.candidate_places"):
+        trainer.fit(other, datamodule=data)
     with pytest.raises(ValueError, match="model.imitate=.*needs model.policy: learned, model.policy_warmup_steps > 0"):
         HapticGlance(imitate=(str(teacher),))
 

@@ -9,6 +9,7 @@ from hg.nets import (
     PCRN,
     P2CARB,
     FCClassifier,
+    CandidateLocationNetwork,
     LocationNetwork,
     LSTMEncoder,
     NClassClassifier,
@@ -117,6 +118,37 @@ def test_location_sample() -> None:
     action, mu, sigma = net.sample(state, generator=torch.Generator().manual_seed(7))
     mu2, sigma2 = net.distribution(state, action)
     assert torch.allclose(mu, mu2) and torch.allclose(sigma, sigma2)
+
+
+def test_candidate_location_chooses_among_its_candidates() -> None:
+    from hg.sim import candidate_requests
+
+    candidates = torch.from_numpy(candidate_requests(3, 0.5, [1.0])).float()  # 3 places x (straight, +x, -x)
+    assert torch.equal(candidates[:, 0], torch.tensor([-0.5] * 3 + [0.0] * 3 + [0.5] * 3))
+    mirrored = candidates * torch.tensor([1.0, -1.0, 1.0, 1.0])  # the set is its own mirror image across the line
+    assert ((mirrored[:, None] - candidates).abs().amax(-1).min(-1).values == 0).all()
+    net = CandidateLocationNetwork(8, candidates, hidden=32)
+    state = torch.randn(B, N, 8)
+    draws = [net.sample(state, generator=torch.Generator().manual_seed(7))[0] for _ in range(2)]
+    assert torch.equal(draws[0], draws[1]) and draws[0].shape == (B, N, 4)
+    log_probs = net.log_probs(state)
+    best, mu, sigma = net.sample(state, deterministic=True)
+    assert torch.equal(best, candidates[log_probs.argmax(-1)])
+    torch.testing.assert_close(mu, log_probs.exp() @ candidates)
+    assert (sigma >= 0).all() and sigma[..., 2].abs().max() < 1e-3  # no candidate leans along the line
+    some = torch.zeros(B, N, dtype=torch.bool)
+    some[0] = True  # the mean action in these rows only; the others draw what they drew without it
+    mixed = net.sample(state, deterministic=some, generator=torch.Generator().manual_seed(7))[0]
+    assert torch.equal(mixed[0], best[0]) and torch.equal(mixed[1:], draws[0][1:])
+    log_pi = net.log_prob(state, draws[0])
+    torch.testing.assert_close(log_pi, log_probs.gather(-1, net.index_of(draws[0])[..., None])[..., 0])
+    log_pi.sum().backward()
+    assert net.net[0].weight.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match=r"request \[0.1, 0.0, 0.0, 1.0\] is not one of the 9 candidates"):
+        net.log_prob(state[:, 0], torch.tensor([0.1, 0.0, 0.0, 1.0]).expand(B, 4))
+    net.std_scale.fill_(1e-5)  # a cold choice: its draws are its most likely candidate
+    assert torch.equal(net.sample(state, generator=torch.Generator().manual_seed(3))[0],
+                       net.sample(state, deterministic=True)[0])
 
 
 @pytest.mark.parametrize("extra_dim", [0, 3], ids=["summary only", "with extra features"])

@@ -336,7 +336,7 @@ def test_planner_probes_where_the_reading_tells_the_class_and_runs_on_real_probe
     assert chosen[:, 0].tolist() == [1, 1] and named[:, 0].tolist() == [1, 0]  # the telling probe first
     assert (chosen[:, 1] != 1).all()  # never twice
     fixed, named = planner.probe_episodes(queries, library.T, cells, labels, 2, 12, 2, 0.005, 1e-3,
-                                          fixed=np.array([0, 2]))
+                                          planner.fixed_sequence(np.array([0, 2])))
     assert fixed.tolist() == [[0, 2], [0, 2]] and named[:, 0].tolist() == [0, 0]  # ties: the first class
     ll = planner.log_likelihood(torch.tensor([[0.2]]), torch.tensor([[0.2, 0.21, planner.MISS]]), 0.01, 1e-3)
     assert ll[0].tolist() == pytest.approx([0.0, -0.5, np.log(1e-3)], rel=1e-4)
@@ -392,3 +392,27 @@ def test_copy_teacher_copies_a_fixed_scan_from_the_probes_and_their_index(tmp_pa
     assert all(0 <= e <= 2 for state in ("pcrn", "pcrn_touch_set") for e in result[state]["own"])
     missing = run("copy_teacher", "--ckpt", str(tmp_path / "nope.ckpt"), "--teacher", str(tmp_path / "scan.npz"))
     assert missing.returncode != 0 and "nope.ckpt: checkpoint not found" in missing.stderr
+
+
+def test_copy_planner_learns_a_teacher_s_candidate_sequence_and_probes_with_it(tmp_path):
+    from hg.sim import PoseRegions, sample_episodes
+
+    planner = script("planner_ceiling")
+    meta = {"n_probes": 3, "places": 3, "span": 0.5, "leans": [1.0], "library": 256, "library_split": "train",
+            "shifts": 0, "mirror": False, "sigma": 0.005, "mismatch": 1e-3, "bin": 0.01, "seed": 0}
+    candidates = planner.candidate_requests(3, 0.5, [1.0])  # 3 places x (straight, +x, -x)
+    labels, poses = sample_episodes(PoseRegions(), "train", 64, 4, np.random.default_rng(0))
+    sequence = candidates[[4, 0, 8]]  # middle leaning +x, first place straight, last place leaning -x
+    planner.save_rollouts(tmp_path / "scan.npz", labels, poses, np.tile(sequence, (64, 1, 1)), meta)
+    proc = run("copy_planner", "--teacher", str(tmp_path / "scan.npz"), "--episodes", "32", "--steps", "300",
+               "--hidden", "32")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert result["top1"] == 1.0 and result["held_out"] == 8  # a fixed sequence is a function of the probe index
+    assert result["copy"]["places"] == 3 and result["copy"]["tilt_deg"] == pytest.approx(2 / 3 * 26.57, abs=0.1)  # lean 1.0: 26.6 degrees
+    assert result["fixed"]["tilt_deg"] == 0 and len(result["random"]["accuracy"]) == 3
+    off = np.tile(sequence, (64, 1, 1))
+    off[:, 0, 0] = 0.1  # not one of the candidates
+    planner.save_rollouts(tmp_path / "off.npz", labels, poses, off, meta)
+    bad = run("copy_planner", "--teacher", str(tmp_path / "off.npz"))
+    assert bad.returncode != 0 and "--teacher: 64 requests are not candidates" in bad.stderr

@@ -11,9 +11,9 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from hg.lightning.data import load_teacher
-from hg.nets import (PCRN, Baseline, FCClassifier, LinearClassifier, LocationNetwork, LSTMEncoder, NClassClassifier,
-                     TouchSetClassifier, left_of_line, reflect)
-from hg.sim import ProbeSimulator
+from hg.nets import (PCRN, Baseline, CandidateLocationNetwork, FCClassifier, LinearClassifier, LocationNetwork,
+                     LSTMEncoder, NClassClassifier, TouchSetClassifier, left_of_line, reflect)
+from hg.sim import ProbeSimulator, candidate_requests
 from hg.sim.robot import achieved
 
 COMPONENTS = ("py", "ux", "uy", "uz")
@@ -135,7 +135,9 @@ class HapticGlance(pl.LightningModule):
                  policy_warmup_steps: int = 0, std_final_scale: float = 1.0, lr_final_scale: float = 1.0,
                  ce_prefixes: Literal["all", "last"] = "all", final_touch_set: bool = False,
                  touch_set_miss_frame: Literal["touches", "line"] = "touches", touch_set_mirror: bool = False,
-                 mirror_encoder: bool = False, imitate: tuple[str, ...] = ()) -> None:
+                 mirror_encoder: bool = False, imitate: tuple[str, ...] = (),
+                 location: Literal["gaussian", "candidates"] = "gaussian", candidate_places: int = 11,
+                 candidate_span: float = 0.5, candidate_leans: tuple[float, ...] = (0.6, 1.0, 2.0)) -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -206,8 +208,22 @@ class HapticGlance(pl.LightningModule):
                              "pooled features)")
         # beyond the paper: the policy may read the touch set's pooled features (detached) beside PCRN's summary
         policy_dim = dim + (self.touch_set.pooled_dim if policy_reads_touch_set else 0)
-        self.location = LocationNetwork(policy_dim, hidden=128, std_floor=std_floor, std_max=std_max,
-                                        zero_mean=prior_exact)
+        # beyond the paper: `candidates`, a choice among fixed requests (the greedy planner's: candidate_places
+        # along the middle candidate_span of the line, each straight or leaning to +-x by each of candidate_leans)
+        if location == "gaussian":
+            self.location = LocationNetwork(policy_dim, hidden=128, std_floor=std_floor, std_max=std_max,
+                                            zero_mean=prior_exact)
+        elif location == "candidates":
+            if prior != "none":
+                raise ValueError(f"model.location='candidates' chooses among fixed requests, so it takes no prior "
+                                 f"(model.prior: none), got prior={prior!r}")
+            try:
+                candidates = candidate_requests(candidate_places, candidate_span, candidate_leans)
+            except ValueError as error:
+                raise ValueError(f"model.candidate_places / candidate_span / candidate_leans: {error}") from None
+            self.location = CandidateLocationNetwork(policy_dim, torch.from_numpy(candidates), hidden=128)
+        else:
+            raise ValueError(f"model.location={location!r}: expected 'gaussian' or 'candidates'")
         self.baseline = Baseline(policy_dim)  # b_k reads the state s_k the policy reads
         self.line_x = 0.0  # where the probe line is (set with the sim)
         self.sim: ProbeSimulator | None = None
@@ -311,6 +327,12 @@ class HapticGlance(pl.LightningModule):
         if self.hparams.imitate and stage == "fit" and self.teacher is None:
             self.teacher = load_teacher(list(self.hparams.imitate), data.regions, data.object_set.name,
                                         self.hparams.n_probes)
+            if isinstance(self.location, CandidateLocationNetwork):  # a choice can copy only its own candidates
+                try:
+                    self.location.index_of(self.teacher["requests"])
+                except ValueError as error:
+                    raise ValueError(f"model.imitate={list(self.hparams.imitate)}: {error} (model.candidate_places, "
+                                     "candidate_span, candidate_leans must be the teacher's)") from None
 
     def teardown(self, stage: str) -> None:
         if self.sim is not None:
@@ -563,9 +585,8 @@ class HapticGlance(pl.LightningModule):
                  sampled: Tensor | None = None) -> tuple[dict[str, Tensor], Tensor]:
         """Forward pass over a finished rollout: the loss terms (without the policy's when not learn_policy) and
         the logits (B, N, C). sampled (B,) bool: the episodes that train the policy (default: all). "imitate": the
-        rollout's requests are a teacher's, and the policy's mean learns to copy them instead of learning by
-        REINFORCE: by their squared distance, whose gradient stays on the cross-entropy's scale, where their
-        log-likelihood under the narrow std would crowd the classifier out of the clipped gradient."""
+        rollout's requests are a teacher's, and the policy learns to copy them (its imitation_loss) instead of
+        learning by REINFORCE."""
         logits = pooled = rep = None
         if self.classifier is not None:  # (else the policy is fixed and nothing reads the encoder)
             rep = self.encode(rollout)
@@ -597,7 +618,7 @@ class HapticGlance(pl.LightningModule):
         beta = h.beta * float(self.location.std_scale)
         if learn_policy == "imitate":
             terms = hybrid_loss(logits, labels, None, None, h.gamma, beta, ce_prefixes=h.ce_prefixes)
-            terms["loss_imitation"] = (mu - actions.clamp(-1, 1)).pow(2).sum(-1).mean()
+            terms["loss_imitation"] = self.location.imitation_loss(log_pi, mu, actions)
             terms["loss"] = terms["loss"] + terms["loss_imitation"]
         else:
             terms = hybrid_loss(logits, labels, log_pi, baseline, h.gamma, beta, h.normalize_advantage, h.reward,

@@ -1,7 +1,7 @@
 """Plain torch networks of the reinforcement haptic glance framework (no Lightning here)."""
 
 from hg.nets.heads import Baseline, FCClassifier, LinearClassifier, NClassClassifier
-from hg.nets.location import LocationNetwork
+from hg.nets.location import CandidateLocationNetwork, LocationNetwork
 from hg.nets.lstm import LSTMEncoder
 from hg.nets.mirror import left_of_line, reflect
 from hg.nets.mlp import cumulative_mean, mlp
@@ -14,6 +14,7 @@ __all__ = [
     "PCRN",
     "P2CARB",
     "Baseline",
+    "CandidateLocationNetwork",
     "FCClassifier",
     "LSTMEncoder",
     "LinearClassifier",

@@ -1,10 +1,11 @@
-"""The location network (paper sec. 2.2 (b)): an autoregressive Gaussian policy over the next probe request."""
+"""The location network (paper sec. 2.2 (b)): an autoregressive Gaussian policy over the next probe request; beyond
+the paper, a categorical choice among fixed candidate requests."""
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from hg.nets.mlp import cumulative_mean
+from hg.nets.mlp import cumulative_mean, mlp
 
 
 class MaskedLinear(nn.Linear):
@@ -20,41 +21,16 @@ class MaskedLinear(nn.Linear):
         return F.linear(x, self.weight * self.mask, self.bias)
 
 
-class LocationNetwork(nn.Module):
-    """pi(a_k | s_k) over a_k = (Py, Ux, Uy, Uz), factorised as in eq. (1): component j conditions on the
-    state and on components < j. One MADE network gives all components at once (teacher forcing), so the
-    log-probabilities of a whole rollout cost one pass; sampling takes one pass per component.
+class PolicyState(nn.Module):
+    """What a location network reads before probe k + 1: the mean of PCRN's first k representations (eq. (1)'s
+    s_k), or a learned start before the first probe. Shared by every location network."""
 
-    Degrees: state inputs 0, action component j has j + 1; hidden units cycle through 0..action_dim - 1;
-    mu_j and sigma_j have degree j + 1 and read only hidden units of lower degree.
-    """
-
-    def __init__(
-        self, in_dim: int, action_dim: int = 4, hidden: int = 128, std_floor: float = 0.05, std_max: float = 1.0,
-        zero_mean: bool = False,
-    ) -> None:
+    def __init__(self, in_dim: int) -> None:
         super().__init__()
-        if not 0 < std_floor < std_max:
-            raise ValueError(f"LocationNetwork needs 0 < std_floor < std_max, got {std_floor=}, {std_max=}")
-        self.action_dim, self.std_floor, self.std_max = action_dim, std_floor, std_max
-        # multiplies every std; a training schedule may shrink it (beyond the paper). A buffer, so that a checkpoint
-        # is tested with the std it was trained with
-        self.register_buffer("std_scale", torch.ones(()))
         self.start = nn.Parameter(torch.zeros(in_dim))  # state before the first probe (empty history)
-        d_in = torch.cat([torch.zeros(in_dim, dtype=torch.long), torch.arange(1, action_dim + 1)])
-        d_hidden = torch.arange(hidden) % action_dim
-        d_out = torch.arange(1, action_dim + 1).repeat(2)  # (mu_1..mu_A, sigma_1..sigma_A)
-        self.net = nn.Sequential(
-            MaskedLinear(d_in, d_hidden, strict=False),
-            nn.ELU(),
-            MaskedLinear(d_hidden, d_hidden, strict=False),
-            nn.ELU(),
-            MaskedLinear(d_hidden, d_out, strict=True),
-        )
-        if zero_mean:  # beyond the paper: mu starts at tanh(offset), so a policy starts exactly at its prior
-            with torch.no_grad():
-                self.net[-1].weight[:action_dim].zero_()
-                self.net[-1].bias[:action_dim].zero_()
+        # multiplies every std (the Gaussian's) or the temperature (the candidates'); a training schedule may shrink
+        # it (beyond the paper). A buffer, so that a checkpoint is tested with the one it was trained with
+        self.register_buffer("std_scale", torch.ones(()))
 
     def state(self, rep_sum: Tensor | None, k: int, batch_size: int | None = None,
               extra: Tensor | None = None) -> Tensor:
@@ -76,6 +52,39 @@ class LocationNetwork(nn.Module):
         start = self.start.expand(rep.shape[0], 1, -1)
         summary = cumulative_mean(rep) if extra is None else torch.cat([cumulative_mean(rep), extra], -1)
         return torch.cat([start, summary[:, :-1]], 1)
+
+
+class LocationNetwork(PolicyState):
+    """pi(a_k | s_k) over a_k = (Py, Ux, Uy, Uz), factorised as in eq. (1): component j conditions on the
+    state and on components < j. One MADE network gives all components at once (teacher forcing), so the
+    log-probabilities of a whole rollout cost one pass; sampling takes one pass per component.
+
+    Degrees: state inputs 0, action component j has j + 1; hidden units cycle through 0..action_dim - 1;
+    mu_j and sigma_j have degree j + 1 and read only hidden units of lower degree.
+    """
+
+    def __init__(
+        self, in_dim: int, action_dim: int = 4, hidden: int = 128, std_floor: float = 0.05, std_max: float = 1.0,
+        zero_mean: bool = False,
+    ) -> None:
+        super().__init__(in_dim)
+        if not 0 < std_floor < std_max:
+            raise ValueError(f"LocationNetwork needs 0 < std_floor < std_max, got {std_floor=}, {std_max=}")
+        self.action_dim, self.std_floor, self.std_max = action_dim, std_floor, std_max
+        d_in = torch.cat([torch.zeros(in_dim, dtype=torch.long), torch.arange(1, action_dim + 1)])
+        d_hidden = torch.arange(hidden) % action_dim
+        d_out = torch.arange(1, action_dim + 1).repeat(2)  # (mu_1..mu_A, sigma_1..sigma_A)
+        self.net = nn.Sequential(
+            MaskedLinear(d_in, d_hidden, strict=False),
+            nn.ELU(),
+            MaskedLinear(d_hidden, d_hidden, strict=False),
+            nn.ELU(),
+            MaskedLinear(d_hidden, d_out, strict=True),
+        )
+        if zero_mean:  # beyond the paper: mu starts at tanh(offset), so a policy starts exactly at its prior
+            with torch.no_grad():
+                self.net[-1].weight[:action_dim].zero_()
+                self.net[-1].bias[:action_dim].zero_()
 
     def distribution(self, state: Tensor, action: Tensor, offset: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """(mu, sigma) of every component, (..., D), (..., A) -> (..., A) twice; masking lets mu_j, sigma_j
@@ -118,3 +127,76 @@ class LocationNetwork(nn.Module):
         action = action.detach()
         mu, sigma = self.distribution(state, action, offset)
         return torch.distributions.Normal(mu, sigma).log_prob(action).sum(-1), mu, sigma
+
+    def imitation_loss(self, log_pi: Tensor, mu: Tensor, action: Tensor) -> Tensor:
+        """How far the policy is from a teacher's requests: the mean's squared distance from them, whose gradient
+        stays on the cross-entropy's scale, where their log-likelihood under a narrow std would crowd the classifier
+        out of the clipped gradient."""
+        return (mu - action.clamp(-1, 1)).pow(2).sum(-1).mean()
+
+
+class CandidateLocationNetwork(PolicyState):
+    """Beyond the paper: pi(a_k | s_k) a categorical choice among fixed candidate requests (C, 4), e.g. the greedy
+    planner's (hg.sim.candidate_requests). A Gaussian copying a teacher that leans to either side ends up between
+    them (docs/training.md); a choice cannot average two sides. Its temperature is std_scale, so a std schedule
+    sharpens it as it would narrow a Gaussian. The returned moments (the request's mean and std per component under
+    the choice) are what the training loop logs for a Gaussian."""
+
+    def __init__(self, in_dim: int, candidates: Tensor, hidden: int = 128) -> None:
+        super().__init__(in_dim)
+        if candidates.ndim != 2 or candidates.shape[1] != 4 or len(candidates) < 2:
+            raise ValueError(f"CandidateLocationNetwork: candidates of shape {tuple(candidates.shape)}, expected (C, 4) "
+                             "with C >= 2")
+        self.register_buffer("candidates", candidates.float())
+        self.net = mlp([in_dim, hidden, hidden, len(candidates)], last_act=False)
+
+    def log_probs(self, state: Tensor) -> Tensor:
+        """(..., D) -> (..., C) log-probabilities of the candidates."""
+        return torch.log_softmax(self.net(state) / self.std_scale, -1)
+
+    def moments(self, log_probs: Tensor) -> tuple[Tensor, Tensor]:
+        """The request's mean and std per component under the choice, (..., 4) each."""
+        p = log_probs.exp()
+        mu = p @ self.candidates
+        return mu, (p @ self.candidates.pow(2) - mu.pow(2)).clamp(min=0).sqrt()
+
+    def index_of(self, action: Tensor) -> Tensor:
+        """(..., 4) requests -> (...,) the index of each among the candidates; refuses one that is none of them."""
+        distance = (action.detach()[..., None, :] - self.candidates).abs().amax(-1)
+        nearest, index = distance.min(-1)
+        if (nearest > 1e-4).any():
+            bad = action[nearest > 1e-4][0].tolist()
+            raise ValueError(f"CandidateLocationNetwork: request {[round(v, 4) for v in bad]} is not one of the "
+                             f"{len(self.candidates)} candidates")
+        return index
+
+    def sample(self, state: Tensor, deterministic: bool | Tensor = False, generator: torch.Generator | None = None,
+               offset: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        """A candidate per row, drawn (or the most likely: deterministic, everywhere or in its True rows; the
+        others draw the same numbers as without it), with the moments of the choice."""
+        if offset is not None:
+            raise ValueError("CandidateLocationNetwork takes no prior offset (model.prior: none)")
+        log_probs = self.log_probs(state).detach()
+        index = log_probs.argmax(-1)
+        if isinstance(deterministic, Tensor) or not deterministic:
+            u = torch.rand(state.shape[:-1], generator=generator, device=state.device, dtype=state.dtype)
+            drawn = (log_probs.exp().cumsum(-1) < u[..., None]).sum(-1).clamp(max=len(self.candidates) - 1)
+            index = drawn if not isinstance(deterministic, Tensor) else torch.where(deterministic, index, drawn)
+        return (self.candidates[index], *self.moments(log_probs))
+
+    def log_prob(self, state: Tensor, action: Tensor, offset: Tensor | None = None) -> Tensor:
+        """log pi(a_k | s_k) of candidate requests, (..., D), (..., 4) -> (...)."""
+        return self.log_prob_and_moments(state, action, offset)[0]
+
+    def log_prob_and_moments(self, state: Tensor, action: Tensor, offset: Tensor | None = None
+                             ) -> tuple[Tensor, Tensor, Tensor]:
+        """log_prob with the moments of the choice it was taken under."""
+        if offset is not None:
+            raise ValueError("CandidateLocationNetwork takes no prior offset (model.prior: none)")
+        log_probs = self.log_probs(state)
+        log_pi = log_probs.gather(-1, self.index_of(action)[..., None])[..., 0]
+        return (log_pi, *self.moments(log_probs))
+
+    def imitation_loss(self, log_pi: Tensor, mu: Tensor, action: Tensor) -> Tensor:
+        """How far the policy is from a teacher's choices: their cross-entropy."""
+        return -log_pi.mean()

@@ -2,8 +2,9 @@
 from hg.sim.objects import ObjectSet, load_object_set
 from hg.sim.poses import SPLITS, PoseRegions, sample_episodes
 from hg.sim.robot import DEFAULT_URDF, ProbeArm
-from hg.sim.scene import Scene
+from hg.sim.scene import Scene, candidate_requests
 from hg.sim.simulator import MODES, ProbeResult, ProbeSimulator, SensorNoise
 
 __all__ = ["DEFAULT_URDF", "MODES", "SPLITS", "ObjectSet", "PoseRegions", "ProbeArm", "ProbeResult",
-           "ProbeSimulator", "Scene", "SensorNoise", "load_object_set", "sample_episodes"]
+           "ProbeSimulator", "Scene", "SensorNoise", "candidate_requests", "load_object_set",
+           "sample_episodes"]

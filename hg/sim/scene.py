@@ -83,3 +83,15 @@ class Scene:
         scale = math.tan(math.radians(self.max_tilt_deg)) * 0.5 * (1.0 - uz) / np.maximum(1.0, np.hypot(ux, uy))
         direction = np.column_stack([ux * scale, uy * scale, -np.ones(len(requests))])
         return points, direction / np.sqrt((direction ** 2).sum(axis=1))[:, None]
+
+
+def candidate_requests(places: int, span: float, leans: list[float] | tuple[float, ...]) -> np.ndarray:
+    """(C, 4) requests a discrete chooser picks from (the greedy planner, or a location network choosing among
+    candidates): every place of a scan (evenly over the middle `span` of the line, in request units) with every
+    direction, straight down first, then to +x and -x by each lean (ux = +-1, uz = 1 - lean, as model.scan_side).
+    The set is its own mirror image across the line (ux -> -ux), as the mirrored views need."""
+    if places < 1 or not 0 < span <= 1 or any(not 0 < lean <= 2 for lean in leans):
+        raise ValueError(f"candidate_requests: places={places} must be >= 1, span={span} in (0, 1], leans={list(leans)} "
+                         "each in (0, 2] (uz = 1 - lean stays in [-1, 1])")
+    directions = [(0.0, 0.0, 1.0)] + [(side, 0.0, 1.0 - lean) for lean in leans for side in (1.0, -1.0)]
+    return np.array([(py, *d) for py in np.linspace(-span, span, places) for d in directions])

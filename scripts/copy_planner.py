@@ -1,0 +1,208 @@
+"""Can a network that *chooses* among the planner's candidate probes copy it, and keep what its probes say? Offline.
+
+Copying the greedy planner with the paper's Gaussian location network failed (`model.imitate`, 0.701 after 10
+probes; `copy_teacher.py`: its mean hedges between the sides, the teacher's lean side matched 0.77-0.82). This
+script asks whether the trouble is the Gaussian: a categorical choice over the planner's own candidates (its
+--places x directions, as `planner_ceiling.py`) cannot average two sides. A small MLP reads what the probes so far
+touched (for every candidate: probed, touched, distance along the ray) and the probe index, and learns the
+teacher's next candidate by cross-entropy on the teacher files' episodes (`planner_ceiling.py --save-rollouts`;
+the last --held-out share is scored for the top-1 match). It then probes the table's held-out test episodes
+itself, one candidate after another from what it touched, and every probe sequence is read by the same namer: the
+planner's weighting of its training library (the teacher file's library: split, size, shifts, mirror, seed), so
+the figures differ only in where the probes went:
+  - `copy`: the network's most likely unprobed candidate; `copy_sampled`: drawn from its distribution;
+  - `fixed`: the straight centre-out scan over the same places; `random`: unprobed candidates at random;
+  - `planner` (with --planner): the planner itself on the first --planner episodes (slow: ~0.5 s an episode).
+If `copy` keeps most of the planner's accuracy over `fixed`, a location network with a categorical choice is worth
+training (docs/training.md, Next (1)); if not, the planner's choices are not a function of the touches that its
+episodes teach. The library and the scored episodes are read in ideal mode unless --mode arm.
+
+    .venv/bin/python scripts/copy_planner.py --teacher data/planner/train_s10.npz data/planner/train_s20.npz
+
+Last line: JSON {"copy" | "copy_sampled" | "fixed" | "random" [| "planner"]: {"accuracy": [after probe 1..N], ...},
+"top1": .., "train_ce": .., "teacher_episodes": .., "held_out": .., "episodes": .., ...}.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "scripts"))
+
+from hg.lightning.data import EvalEpisodes, load_teacher  # noqa: E402
+from hg.sim import PoseRegions, ProbeSimulator, candidate_requests, sample_episodes  # noqa: E402
+from planner_ceiling import (CHUNK, MISS, cell_matrix, fixed_sequence,  # noqa: E402
+                             library_readings, probe_episodes, readings, summary)
+
+
+def teacher_meta(paths: list[str]) -> dict:
+    """The planner arguments the teacher files were made with; they must agree on those that shape the candidates
+    and the library, since one namer reads every sequence."""
+    metas = []
+    for path in paths:
+        with np.load(path) as f:
+            metas.append(json.loads(str(f["meta"])))
+    keys = ("places", "span", "leans", "library", "library_split", "shifts", "mirror", "sigma", "mismatch", "bin")
+    for path, meta in zip(paths[1:], metas[1:]):
+        if (differ := [k for k in keys if meta.get(k) != metas[0].get(k)]):
+            raise ValueError(f"--teacher {path}: planner arguments {differ} differ from {paths[0]}'s")
+    return metas[0]
+
+
+def state(used: torch.Tensor, query: torch.Tensor, k: int, n_probes: int, probe_length: float) -> torch.Tensor:
+    """(Q, 3C + N): for every candidate whether it was probed, touched, and how far along the ray (/ U_len); and
+    probe k one-hot."""
+    touched = used & (query != MISS)
+    distance = torch.where(touched, query / probe_length, 0.0)
+    step = torch.nn.functional.one_hot(torch.full((len(used),), k), n_probes).float()
+    return torch.cat([used.float(), touched.float(), distance, step], 1)
+
+
+def teacher_samples(chosen: torch.Tensor, query: torch.Tensor, n_probes: int, probe_length: float
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every (state, probed so far, teacher's next candidate) of the teacher's episodes, (E * N, ...)."""
+    used = torch.zeros(query.shape, dtype=torch.bool)
+    rows, states, masks = torch.arange(len(query)), [], []
+    for k in range(n_probes):
+        states.append(state(used, query, k, n_probes, probe_length))
+        masks.append(used.clone())
+        used[rows, chosen[:, k]] = True
+    return torch.cat(states), torch.cat(masks), chosen.T.reshape(-1)
+
+
+def fit(states: torch.Tensor, masks: torch.Tensor, targets: torch.Tensor, steps: int, hidden: int, seed: int
+        ) -> tuple[nn.Module, float]:
+    """An MLP's logits over the candidates, trained by cross-entropy on the teacher's choices (probed ones masked)."""
+    torch.manual_seed(seed)
+    net = nn.Sequential(nn.Linear(states.shape[1], hidden), nn.ELU(), nn.Linear(hidden, hidden), nn.ELU(),
+                        nn.Linear(hidden, masks.shape[1]))
+    optimizer = torch.optim.Adam(net.parameters(), lr=1e-3)
+    generator, recent = torch.Generator().manual_seed(seed), []
+    for _ in range(steps):
+        rows = torch.randint(0, len(states), (256,), generator=generator)
+        logits = net(states[rows]).masked_fill(masks[rows], -torch.inf)
+        loss = nn.functional.cross_entropy(logits, targets[rows])
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        recent = (recent + [loss.item()])[-200:]
+    return net.eval(), sum(recent) / len(recent)
+
+
+def network_choice(net: nn.Module, n_probes: int, probe_length: float, generator: torch.Generator | None):
+    """A `choose` for probe_episodes: the network's most likely unprobed candidate, or one drawn (with generator)."""
+    def choose(k: int, used: torch.Tensor, query: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            logits = net(state(used, query, k, n_probes, probe_length)).masked_fill(used, -torch.inf)
+        if generator is None:
+            return logits.argmax(1)
+        return torch.multinomial(torch.softmax(logits, 1), 1, generator=generator)[:, 0]
+    return choose
+
+
+def random_choice(generator: torch.Generator):
+    """A `choose` for probe_episodes: an unprobed candidate at random."""
+    def choose(k: int, used: torch.Tensor, query: torch.Tensor) -> torch.Tensor:
+        return torch.multinomial((~used).float(), 1, generator=generator)[:, 0]
+    return choose
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--teacher", nargs="+", required=True, help="teacher files (planner_ceiling.py --save-rollouts)")
+    parser.add_argument("--held-out", type=float, default=0.125, help="share of the teacher's episodes kept for top-1")
+    parser.add_argument("--episodes", type=int, default=2048, help="the table's test episodes scored (the first ones)")
+    parser.add_argument("--mode", choices=["ideal", "arm"], default="ideal", help="how the scored episodes are probed")
+    parser.add_argument("--library", type=int, help="library episodes (default: the teacher's)")
+    parser.add_argument("--planner", type=int, default=0, help="also score the planner on this many episodes")
+    parser.add_argument("--steps", type=int, default=20000)
+    parser.add_argument("--hidden", type=int, default=256)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    for path in args.teacher:
+        if not Path(path).is_file():
+            parser.error(f"--teacher {path}: file not found (write one with planner_ceiling.py --save-rollouts)")
+    if args.steps < 1 or args.hidden < 1 or args.episodes < 1 or args.planner < 0 or not 0 < args.held_out < 1:
+        parser.error("--steps, --hidden, --episodes must be >= 1, --planner >= 0, --held-out in (0, 1)")
+    meta = teacher_meta(args.teacher)
+    torch.set_num_threads(1)
+    start = time.time()
+    sim = ProbeSimulator("hg4", batch_size=1024, mode="ideal", seed=args.seed)
+    regions, n_classes = PoseRegions(sim.scene), len(sim.classes)
+    teacher = load_teacher(args.teacher, regions, "hg4", meta["n_probes"])
+    n_probes, probe_length = meta["n_probes"], sim.scene.probe_length
+    candidates = candidate_requests(meta["places"], meta["span"], meta["leans"])
+    match = (teacher["requests"].numpy()[:, :, None] == candidates[None, None].astype(np.float32)).all(-1)
+    if not match.any(-1).all():
+        parser.error(f"--teacher: {int((~match.any(-1)).sum())} requests are not candidates of the teacher's meta")
+    chosen = torch.from_numpy(match.argmax(-1))
+    labels, poses = teacher["labels"].numpy(), teacher["poses"].numpy()
+    teacher_query = torch.from_numpy(readings(sim, labels, poses, candidates))
+    n_train = len(labels) - max(1, round(args.held_out * len(labels)))
+
+    library_labels, library_poses = sample_episodes(regions, meta["library_split"], args.library or meta["library"],
+                                                    n_classes, np.random.default_rng(meta["seed"] + 1))
+    library, library_labels = library_readings(sim, library_labels, library_poses, meta["places"], meta["span"],
+                                               meta["leans"], meta["shifts"], meta["mirror"])
+    batches = EvalEpisodes(regions, "test", args.episodes, 256, n_classes, seed=0).batches
+    test_labels = np.concatenate([b["labels"].numpy() for b in batches])[:args.episodes]
+    test_poses = np.concatenate([b["poses"].numpy() for b in batches])[:args.episodes]
+    if args.mode == "arm":
+        with ProbeSimulator("hg4", batch_size=256, mode="arm", seed=args.seed) as arm:
+            query = readings(arm, test_labels, test_poses, candidates)
+    else:
+        query = readings(sim, test_labels, test_poses, candidates)
+    print(f"read {len(labels)} teacher, {len(library)} library and {len(query)} test episodes in "
+          f"{time.time() - start:.0f} s", flush=True)
+
+    start = time.time()
+    states, masks, targets = teacher_samples(chosen[:n_train], teacher_query[:n_train], n_probes, probe_length)
+    net, train_ce = fit(states, masks, targets, args.steps, args.hidden, args.seed)
+    held_states, held_masks, held_targets = teacher_samples(chosen[n_train:], teacher_query[n_train:], n_probes,
+                                                            probe_length)
+    with torch.no_grad():
+        top1 = (net(held_states).masked_fill(held_masks, -torch.inf).argmax(1) == held_targets).float().mean().item()
+    print(f"fitted in {time.time() - start:.0f} s: train cross-entropy {train_ce:.3f}, held-out top-1 {top1:.3f}",
+          flush=True)
+
+    n_bins = int(np.ceil(probe_length / meta["bin"])) + 2
+    bins = np.where(library == MISS, 0, 1 + np.minimum(library / meta["bin"], n_bins - 2)).astype(np.int64)
+    cells = cell_matrix(bins, library_labels, n_bins, n_classes)
+    library_t, labels_t, query_t = (torch.from_numpy(library.T.copy()), torch.from_numpy(library_labels),
+                                    torch.from_numpy(query))
+    order = np.argsort(np.abs(np.linspace(-meta["span"], meta["span"], meta["places"])), kind="stable")
+    runs = {"copy": (network_choice(net, n_probes, probe_length, None), len(query)),
+            "copy_sampled": (network_choice(net, n_probes, probe_length, torch.Generator().manual_seed(args.seed)),
+                             len(query)),
+            "fixed": (fixed_sequence(order * (1 + 2 * len(meta["leans"]))), len(query)),
+            "random": (random_choice(torch.Generator().manual_seed(args.seed)), len(query))}
+    if args.planner:
+        runs["planner"] = (None, min(args.planner, len(query)))
+    offsets = test_poses[:, 0] - sim.scene.probe_x
+    results = {}
+    for name, (choose, n) in runs.items():
+        start = time.time()
+        chosen_test, named = map(np.concatenate, zip(*(
+            probe_episodes(query_t[i:min(i + CHUNK, n)], library_t, cells, labels_t, n_probes, n_bins, n_classes,
+                           meta["sigma"], meta["mismatch"], choose) for i in range(0, n, CHUNK))))
+        r = results[name] = summary(chosen_test, named, test_labels[:n], query[:n], candidates, offsets[:n], sim)
+        print(f"{name} ({n} episodes): accuracy after each probe " + " ".join(f"{a:.3f}" for a in r["accuracy"])
+              + f"; {r['touches']:.2f} touches, tilt {r['tilt_deg']:.1f} deg, {r['places']:.1f} places "
+              f"({time.time() - start:.0f} s)", flush=True)
+    sim.close()
+    print(json.dumps(results | {"top1": round(top1, 4), "train_ce": round(train_ce, 4), "teacher_episodes": n_train,
+                                "held_out": len(labels) - n_train, "episodes": len(query), "mode": args.mode,
+                                "library_episodes": len(library), "steps": args.steps, "hidden": args.hidden}))
+
+
+if __name__ == "__main__":
+    main()
