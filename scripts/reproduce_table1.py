@@ -206,11 +206,11 @@ ROWS = {
         f"hybrid rule + wide touch set, temperature falling to a tenth, 16000 steps, learning rate falling to 5%, "
         f"{FINAL_TOUCH_SET}, both touch sets reading an episode and its mirror image across the line alike (beyond "
         "the paper)"),
-    "pcrn_fc_candidates_imitate_planner_final_mirror_long": Row(
+    "pcrn_fc_candidates_imitate_planner_final_mirror_encoder": Row(
         "PCRN-FC+ choosing among the greedy planner's candidate probes, copying the planner for 8000 steps, then the "
-        f"hybrid rule + wide touch set, temperature falling to a tenth, 32000 steps, learning rate falling to 5%, "
-        f"{FINAL_TOUCH_SET}, both touch sets reading an episode and its mirror image across the line alike (beyond "
-        "the paper)"),
+        f"hybrid rule + wide touch set, temperature falling to a tenth, 16000 steps, learning rate falling to 5%, "
+        f"{FINAL_TOUCH_SET}, the touch sets, the encoder and the choice reading an episode and its mirror image across "
+        "the line alike (beyond the paper)"),
     "pcrn_fc_coarse_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay": Row(
         "PCRN-FC+ from the coarse-first scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
         "from step 8000, policy starting exactly on the scan and held near it, learning rate falling to 5% (beyond "
