@@ -73,8 +73,9 @@ def main() -> None:
                    "accuracy_mean_action": [round(float(a), 4) for a in mean[rows].mean(0)]}
             for name, rows in (("unseen_position", kind), ("unseen_heading", ~kind)) if rows.any()}
         for name, r in results[str(ckpt)].items():
-            print(f"{ckpt}: {name} ({r['episodes']} episodes): after 5 {r['accuracy'][4]:.3f}, after 10 "
-                  f"{r['accuracy'][-1]:.3f} (mean action {r['accuracy_mean_action'][-1]:.3f})", flush=True)
+            n = len(r["accuracy"])
+            print(f"{ckpt}: {name} ({r['episodes']} episodes): after {(n + 1) // 2} {r['accuracy'][(n - 1) // 2]:.3f}, "
+                  f"after {n} {r['accuracy'][-1]:.3f} (mean action {r['accuracy_mean_action'][-1]:.3f})", flush=True)
     print(json.dumps(results | {"split": args.split, "mode": args.mode, "episodes": episodes}))
 
 

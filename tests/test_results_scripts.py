@@ -416,3 +416,27 @@ def test_copy_planner_learns_a_teacher_s_candidate_sequence_and_probes_with_it(t
     planner.save_rollouts(tmp_path / "off.npz", labels, poses, off, meta)
     bad = run("copy_planner", "--teacher", str(tmp_path / "off.npz"))
     assert bad.returncode != 0 and "--teacher: 64 requests are not candidates" in bad.stderr
+
+
+def test_accuracy_by_cell_tells_unseen_positions_from_unseen_headings(tmp_path):
+    from hg.sim import PoseRegions
+
+    regions = PoseRegions()
+    kinds = script("accuracy_by_cell").pose_kinds
+    poses = regions.sample("test", 512, np.random.default_rng(0))
+    whole = kinds(regions, poses, "test")
+    x, y, rz = regions.cell_of(poses)
+    assert whole.any() and (~whole).any()
+    assert (regions.table[x[whole], y[whole]] == 2).all()  # every heading of those positions is held out
+    assert ((regions.table[x[~whole], y[~whole]] == 0).any(-1)).all()  # the others' positions are trained on
+    fit = subprocess.run([sys.executable, "-m", "hg.lightning.cli", "fit", "--config", str(ROOT / "configs" / "tiny.yaml"),
+                          "--trainer.max_steps", "1"], capture_output=True, text=True, env=ENV, cwd=tmp_path, timeout=300)
+    assert fit.returncode == 0, fit.stderr[-2000:]
+    checkpoint = next(tmp_path.glob("runs/haptic-glance/*/checkpoints/last.ckpt"))
+    proc = run("accuracy_by_cell", "--ckpt", str(checkpoint), "--episodes", "64", "--mode", "ideal")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    result = json.loads(proc.stdout.strip().splitlines()[-1])[str(checkpoint)]
+    assert result["unseen_position"]["episodes"] + result["unseen_heading"]["episodes"] == 64
+    assert all(0 <= a <= 1 for r in result.values() for a in r["accuracy"] + r["accuracy_mean_action"])
+    missing = run("accuracy_by_cell", "--ckpt", str(tmp_path / "nope.ckpt"))
+    assert missing.returncode != 0 and "nope.ckpt: checkpoint not found" in missing.stderr
