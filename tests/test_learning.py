@@ -123,9 +123,10 @@ def teacher(tmp_path_factory):
     return path
 
 
-@pytest.mark.parametrize("location", ["gaussian", "candidates"])
-def test_imitation_warmup_probes_where_the_teacher_chose_and_copies_its_requests(data, teacher, location):
-    model = make_model(data, policy_warmup_steps=30, imitate=(str(teacher),), location=location)
+@pytest.mark.parametrize("location, reads_probes", [("gaussian", False), ("candidates", False), ("candidates", True)])
+def test_imitation_warmup_probes_where_the_teacher_chose_and_copies_its_requests(data, teacher, location, reads_probes):
+    model = make_model(data, policy_warmup_steps=30, imitate=(str(teacher),), location=location,
+                       choice_reads_probes=reads_probes)
     losses = []
 
     class Record(pl.Callback):
@@ -172,6 +173,35 @@ def test_candidate_policy_acts_among_its_candidates_in_the_view_it_read_and_lear
         HapticGlance(location="candidates", prior="line_scan")
     with pytest.raises(ValueError, match="model.candidate_places / candidate_span / candidate_leans: .*span=1.5"):
         HapticGlance(location="candidates", candidate_span=1.5)
+
+
+def test_choice_reading_the_probes_never_repeats_one_and_the_loss_reads_what_the_rollout_read(data):
+    """model.choice_reads_probes: the choice reads, beside PCRN's state, what each candidate read so far, and never
+    probes a candidate twice; the loss pass rebuilds the states the rollout chose from, so the mean-action rollout's
+    requests are the candidates the loss pass finds most likely (the probed ones excluded)."""
+    model = make_model(data, location="candidates", candidate_places=3, candidate_leans=(1.0,),
+                       choice_reads_probes=True, touch_set=True, policy_reads_touch_set=True)
+    candidates = model.location.candidates  # 9 candidates for the 4 probes of the test data
+    batch = first_batch(data)
+    for deterministic in (False, True):
+        rollout = model.rollout(batch["labels"], batch["poses"], 1, deterministic=deterministic)
+        index = model.location.index_of(rollout.actions)
+        assert all(len(set(row.tolist())) == data.n_probes for row in index)  # no candidate twice
+    extra, probed = model.policy_extra(rollout.actions, rollout.points, pooled=model.touch_set.pooled(rollout.points))
+    assert probed[:, -1].sum(-1).eq(data.n_probes).all()
+    touched = rollout.points[..., 3] > 0.5
+    assert touched.any()
+    readings = extra[..., -(3 * len(candidates) + data.n_probes):]
+    b, k = touched.nonzero()[0].tolist()  # a touch is read at its candidate from that probe on
+    column = len(candidates) + index[b, k]  # its "touched" reading
+    assert readings[b, k:, column].eq(1).all() and readings[b, :k, column].eq(0).all()
+    states = model.policy_states(model.encode(rollout), model.mirrored_states(rollout.points), extra)
+    exclude = F.pad(probed[:, :-1], (0, 0, 1, 0), value=False)
+    torch.testing.assert_close(candidates[model.location.log_probs(states, exclude).argmax(-1)], rollout.actions)
+    terms, _ = model.evaluate(model.rollout(batch["labels"], batch["poses"], 2), batch["labels"])
+    assert terms["loss_policy"].isfinite()
+    with pytest.raises(ValueError, match="model.choice_reads_probes=true .* needs model.location: candidates"):
+        HapticGlance(choice_reads_probes=True)
 
 
 def test_a_teacher_with_held_out_poses_or_no_warmup_is_refused(data, teacher, tmp_path):

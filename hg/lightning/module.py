@@ -137,7 +137,8 @@ class HapticGlance(pl.LightningModule):
                  touch_set_miss_frame: Literal["touches", "line"] = "touches", touch_set_mirror: bool = False,
                  mirror_encoder: bool = False, imitate: tuple[str, ...] = (),
                  location: Literal["gaussian", "candidates"] = "gaussian", candidate_places: int = 11,
-                 candidate_span: float = 0.5, candidate_leans: tuple[float, ...] = (0.6, 1.0, 2.0)) -> None:
+                 candidate_span: float = 0.5, candidate_leans: tuple[float, ...] = (0.6, 1.0, 2.0),
+                 choice_reads_probes: bool = False) -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -208,6 +209,10 @@ class HapticGlance(pl.LightningModule):
                              "pooled features)")
         # beyond the paper: the policy may read the touch set's pooled features (detached) beside PCRN's summary
         policy_dim = dim + (self.touch_set.pooled_dim if policy_reads_touch_set else 0)
+        if choice_reads_probes and (location != "candidates" or mirror_encoder):
+            raise ValueError(f"model.choice_reads_probes=true reads the probes by candidate, so it needs "
+                             f"model.location: candidates and model.mirror_encoder: false, got location={location!r}, "
+                             f"mirror_encoder={mirror_encoder}")
         # beyond the paper: `candidates`, a choice among fixed requests (the greedy planner's: candidate_places
         # along the middle candidate_span of the line, each straight or leaning to +-x by each of candidate_leans)
         if location == "gaussian":
@@ -221,6 +226,9 @@ class HapticGlance(pl.LightningModule):
                 candidates = candidate_requests(candidate_places, candidate_span, candidate_leans)
             except ValueError as error:
                 raise ValueError(f"model.candidate_places / candidate_span / candidate_leans: {error}") from None
+            # choice_reads_probes: beside PCRN's state, what each candidate read so far (CandidateLocationNetwork.
+            # readings), and it never repeats a probe; the offline copy of the planner read this (0.962 after 10)
+            policy_dim += (3 * len(candidates) + n_probes) if choice_reads_probes else 0
             self.location = CandidateLocationNetwork(policy_dim, torch.from_numpy(candidates), hidden=128)
         else:
             raise ValueError(f"model.location={location!r}: expected 'gaussian' or 'candidates'")
@@ -341,26 +349,48 @@ class HapticGlance(pl.LightningModule):
 
     # -- rollout -------------------------------------------------------------------------------------
     def next_actions(self, k: int, points: Tensor, rep_sum: Tensor | None, deterministic: bool | Tensor,
-                     generator: torch.Generator, follow_scan: bool = False) -> Tensor:
-        """Request k + 1 of every episode (k may be 0), given the points (B, N, 4) of the rollout so far (only
-        points[:, :k] are read); a learned policy reads the sum of the representations after probes 1..k, which
-        the rollout keeps running ((V, B, D), one per view of encoder_views()). follow_scan: the fixed scan,
-        whatever the policy."""
+                     generator: torch.Generator, follow_scan: bool = False, actions: Tensor | None = None) -> Tensor:
+        """Request k + 1 of every episode (k may be 0), given the points (B, N, 4) of the rollout so far and the
+        actions (B, N, 4) that probed them (only [:, :k] are read; actions only by a choice reading the probes); a
+        learned policy reads the sum of the representations after probes 1..k, which the rollout keeps running
+        ((V, B, D), one per view of encoder_views()). follow_scan: the fixed scan, whatever the policy."""
         policy, batch = self.hparams.policy, len(points)
         if policy == "random":
             return torch.rand(batch, 4, generator=generator) * 2 - 1
         if policy == "line_scan" or follow_scan:
             return self.scan_requests(points)[:, k]
-        extra = None
-        if self.hparams.policy_reads_touch_set and k > 0:  # what the touch set pooled from probes 1..k
-            extra = self.touch_set.pooled(points[:, :k].to(self.device), last_only=True)[:, -1]
+        extra = exclude = None
+        if k > 0:  # what probes 1..k read, beside PCRN's state
+            extra, exclude = self.policy_extra(None if actions is None else actions[:, :k], points[:, :k],
+                                               last_only=True)
+            extra, exclude = (None if t is None else t[:, -1] for t in (extra, exclude))
         mirrored = self.mirrored_states(points[:, :k + 1])[:, k].to(self.device)  # the policy acts in that view
         state = self.location.state(None if rep_sum is None else pick_view(rep_sum, mirrored), k, batch_size=batch,
                                     extra=extra)
         offsets = self.prior_offsets(points)
         offset = None if offsets is None else reflect(offsets[:, k].to(state.device), 1, where=mirrored)
-        action = self.location.sample(state, deterministic=deterministic, generator=generator, offset=offset)[0]
+        choice = {} if exclude is None else {"exclude": exclude}
+        action = self.location.sample(state, deterministic=deterministic, generator=generator, offset=offset,
+                                      **choice)[0]
         return reflect(action, 1, where=mirrored)
+
+    def policy_extra(self, actions: Tensor | None, points: Tensor, last_only: bool = False,
+                     pooled: Tensor | None = None) -> tuple[Tensor | None, Tensor | None]:
+        """Beyond the paper, what the policy reads beside PCRN's state: row j, after probes 1..j + 1 of the
+        actions and points (B, K, 4) -> features (B, K, E) (the touch set's pooled ones, detached, and / or a
+        choice's readings by candidate) or None, and the candidates probed (B, K, C) the choice excludes, or None.
+        last_only: row K - 1 only (K = 1 in the outputs), what a probe loop reads. pooled: the touch set's
+        features of every row, if computed already."""
+        h, features, exclude = self.hparams, [], None
+        if h.policy_reads_touch_set:
+            if pooled is None:
+                pooled = self.touch_set.pooled(points.to(self.device), last_only=last_only)
+            features.append(pooled.detach())
+        if h.choice_reads_probes:
+            readings, exclude = self.location.readings(actions.to(self.device), points.to(self.device), h.n_probes)
+            features.append(readings[:, -1:] if last_only else readings)
+            exclude = exclude[:, -1:] if last_only else exclude
+        return (torch.cat(features, -1) if features else None), exclude
 
     def prior_offsets(self, points: Tensor) -> Tensor | None:
         """(B, N, 4) pre-tanh means of the learned policy's prior, or None without one. Beyond the paper: the
@@ -523,7 +553,8 @@ class HapticGlance(pl.LightningModule):
         memory = rep_sum = None  # the encoder's memory of the probes so far, and the sum of its outputs
         for k in range(n):
             action = (requests[:, k] if requests is not None
-                      else self.next_actions(k, points, rep_sum, deterministic, generator, follow_scan)).cpu()
+                      else self.next_actions(k, points, rep_sum, deterministic, generator, follow_scan,
+                                             actions)).cpu()
             if not torch.isfinite(action).all():
                 raise FloatingPointError(f"non-finite probe request from the '{self.hparams.policy}' policy at probe "
                                          f"{k + 1}, global step {self.global_step}")
@@ -604,13 +635,14 @@ class HapticGlance(pl.LightningModule):
         if self.hparams.policy == "learned" and learn_policy:
             # s_k from which request k was drawn; beyond the paper, the policy may read it without training the encoder
             # and the touch set's pooled features, which learn from the cross-entropy only
-            extra = pooled.detach() if self.hparams.policy_reads_touch_set else None
+            extra, exclude = self.policy_extra(rollout.actions, rollout.points, pooled=pooled)
             mirrored = self.mirrored_states(rollout.points)  # the policy drew each request in its state's view
             states = self.policy_states(rep.detach() if self.hparams.policy_reads_detached else rep, mirrored, extra)
             offsets = self.prior_offsets(rollout.points)
             offsets = None if offsets is None else reflect(offsets, 1, where=mirrored)
             actions = reflect(rollout.actions, 1, where=mirrored)  # in the view the policy drew them in
-            log_pi, mu, sigma = self.location.log_prob_and_moments(states, actions, offsets)
+            choice = {} if exclude is None else {"exclude": F.pad(exclude[:, :-1], (0, 0, 1, 0), value=False)}
+            log_pi, mu, sigma = self.location.log_prob_and_moments(states, actions, offsets, **choice)
             baseline = self.baseline(states.detach())
         h = self.hparams
         # the gradient of log N grows as 1 / std: a shrinking std must not let the policy term crowd the others

@@ -150,9 +150,26 @@ class CandidateLocationNetwork(PolicyState):
         self.register_buffer("candidates", candidates.float())
         self.net = mlp([in_dim, hidden, hidden, len(candidates)], last_act=False)
 
-    def log_probs(self, state: Tensor) -> Tensor:
-        """(..., D) -> (..., C) log-probabilities of the candidates."""
-        return torch.log_softmax(self.net(state) / self.std_scale, -1)
+    def log_probs(self, state: Tensor, exclude: Tensor | None = None) -> Tensor:
+        """(..., D) -> (..., C) log-probabilities of the candidates; exclude (..., C) bool: candidates never chosen
+        (those probed already, whose reading would repeat)."""
+        logits = self.net(state) / self.std_scale
+        return torch.log_softmax(logits if exclude is None else logits.masked_fill(exclude, -torch.inf), -1)
+
+    def readings(self, actions: Tensor, points: Tensor, n_probes: int) -> tuple[Tensor, Tensor]:
+        """What the probes so far read, by candidate (beyond the paper: the state of scripts/copy_planner.py, which
+        copies the greedy planner from it). actions (B, K, 4) candidates and the points (B, K, 4) they returned
+        (X, Y, Z, T) -> row j, after probes 1..j + 1: features (B, K, 3C + n_probes), for every candidate whether
+        it was probed, whether it touched and how deep (-Z), then the next probe's index one-hot; and the probed
+        candidates (B, K, C) bool."""
+        chosen = F.one_hot(self.index_of(actions), len(self.candidates)).float()  # (B, K, C)
+        touched = chosen * (points[..., 3:] > 0.5).float()
+        probed = chosen.cumsum(1) > 0
+        depth = (touched * -points[..., 2:3]).cummax(1).values
+        step = F.one_hot(torch.arange(1, actions.shape[1] + 1).clamp(max=n_probes - 1), n_probes).float()
+        features = torch.cat([probed.float(), (touched.cumsum(1) > 0).float(), depth,
+                              step.to(actions.device).expand(len(actions), -1, -1)], -1)
+        return features, probed
 
     def moments(self, log_probs: Tensor) -> tuple[Tensor, Tensor]:
         """The request's mean and std per component under the choice, (..., 4) each."""
@@ -171,12 +188,12 @@ class CandidateLocationNetwork(PolicyState):
         return index
 
     def sample(self, state: Tensor, deterministic: bool | Tensor = False, generator: torch.Generator | None = None,
-               offset: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+               offset: Tensor | None = None, exclude: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
         """A candidate per row, drawn (or the most likely: deterministic, everywhere or in its True rows; the
-        others draw the same numbers as without it), with the moments of the choice."""
+        others draw the same numbers as without it), with the moments of the choice; never an excluded one."""
         if offset is not None:
             raise ValueError("CandidateLocationNetwork takes no prior offset (model.prior: none)")
-        log_probs = self.log_probs(state).detach()
+        log_probs = self.log_probs(state, exclude).detach()
         index = log_probs.argmax(-1)
         if isinstance(deterministic, Tensor) or not deterministic:
             u = torch.rand(state.shape[:-1], generator=generator, device=state.device, dtype=state.dtype)
@@ -184,16 +201,17 @@ class CandidateLocationNetwork(PolicyState):
             index = drawn if not isinstance(deterministic, Tensor) else torch.where(deterministic, index, drawn)
         return (self.candidates[index], *self.moments(log_probs))
 
-    def log_prob(self, state: Tensor, action: Tensor, offset: Tensor | None = None) -> Tensor:
+    def log_prob(self, state: Tensor, action: Tensor, offset: Tensor | None = None, exclude: Tensor | None = None
+                 ) -> Tensor:
         """log pi(a_k | s_k) of candidate requests, (..., D), (..., 4) -> (...)."""
-        return self.log_prob_and_moments(state, action, offset)[0]
+        return self.log_prob_and_moments(state, action, offset, exclude)[0]
 
-    def log_prob_and_moments(self, state: Tensor, action: Tensor, offset: Tensor | None = None
-                             ) -> tuple[Tensor, Tensor, Tensor]:
+    def log_prob_and_moments(self, state: Tensor, action: Tensor, offset: Tensor | None = None,
+                             exclude: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
         """log_prob with the moments of the choice it was taken under."""
         if offset is not None:
             raise ValueError("CandidateLocationNetwork takes no prior offset (model.prior: none)")
-        log_probs = self.log_probs(state)
+        log_probs = self.log_probs(state, exclude)
         log_pi = log_probs.gather(-1, self.index_of(action)[..., None])[..., 0]
         return (log_pi, *self.moments(log_probs))
 
