@@ -151,6 +151,35 @@ def test_candidate_location_chooses_among_its_candidates() -> None:
                        net.sample(state, deterministic=True)[0])
 
 
+def test_along_line_choice_moves_with_the_readings_along_the_line() -> None:
+    """choice_along_line: readings moved one place along the line (away from its ends) move the logits one place,
+    whatever PCRN's state; an MLP over the same state does not."""
+    from hg.sim import candidate_requests
+
+    places, directions, probes, dim = 11, 3, 4, 5
+    candidates = torch.from_numpy(candidate_requests(places, 0.5, [1.0])).float()
+    readings = 3 * len(candidates) + probes
+    torch.manual_seed(0)
+    net = CandidateLocationNetwork(dim + readings, candidates, hidden=32, along_line=(readings, places))
+    mlp_net = CandidateLocationNetwork(dim + readings, candidates, hidden=32)
+    local = torch.zeros(2, 3, places, directions)
+    local[:, :, 4:7] = torch.rand(2, 3, 3, directions)  # readings at places 4..6
+    moved = torch.roll(local, 1, dims=2)  # at places 5..7
+    rest = torch.randn(2, dim), torch.eye(probes)[[1, 2]]
+
+    def state(local):
+        return torch.cat([rest[0], local.reshape(2, -1), rest[1]], -1)
+
+    for choice, moves in ((net, True), (mlp_net, False)):
+        logits = choice.log_probs(state(local)).reshape(2, places, directions)
+        logits_moved = choice.log_probs(state(moved)).reshape(2, places, directions)
+        # log-probabilities differ by the normaliser only; places 4..5 see no end of the line (reach 4) either way
+        shift = logits_moved[:, 5:7] - logits[:, 4:6]
+        assert torch.allclose(shift, shift[:, :1, :1].expand_as(shift), atol=1e-5) == moves
+    with pytest.raises(ValueError, match="AlongLineChoice: 10 readings in a state of 15 cannot hold 3 x 11"):
+        CandidateLocationNetwork(15, candidates, along_line=(10, places))
+
+
 @pytest.mark.parametrize("extra_dim", [0, 3], ids=["summary only", "with extra features"])
 def test_location_states_match_state(extra_dim) -> None:
     net = LocationNetwork(8 + extra_dim, hidden=32)

@@ -138,7 +138,7 @@ class HapticGlance(pl.LightningModule):
                  mirror_encoder: bool = False, imitate: tuple[str, ...] = (),
                  location: Literal["gaussian", "candidates"] = "gaussian", candidate_places: int = 11,
                  candidate_span: float = 0.5, candidate_leans: tuple[float, ...] = (0.6, 1.0, 2.0),
-                 choice_reads_probes: bool = False) -> None:
+                 choice_reads_probes: bool = False, choice_along_line: bool = False) -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -213,6 +213,9 @@ class HapticGlance(pl.LightningModule):
             raise ValueError(f"model.choice_reads_probes=true reads the probes by candidate, so it needs "
                              f"model.location: candidates and model.mirror_encoder: false, got location={location!r}, "
                              f"mirror_encoder={mirror_encoder}")
+        if choice_along_line and not choice_reads_probes:
+            raise ValueError("model.choice_along_line=true convolves the readings by candidate along the line, so it "
+                             "needs model.choice_reads_probes: true")
         # beyond the paper: `candidates`, a choice among fixed requests (the greedy planner's: candidate_places
         # along the middle candidate_span of the line, each straight or leaning to +-x by each of candidate_leans)
         if location == "gaussian":
@@ -228,8 +231,12 @@ class HapticGlance(pl.LightningModule):
                 raise ValueError(f"model.candidate_places / candidate_span / candidate_leans: {error}") from None
             # choice_reads_probes: beside PCRN's state, what each candidate read so far (CandidateLocationNetwork.
             # readings), and it never repeats a probe; the offline copy of the planner read this (0.962 after 10)
-            policy_dim += (3 * len(candidates) + n_probes) if choice_reads_probes else 0
-            self.location = CandidateLocationNetwork(policy_dim, torch.from_numpy(candidates), hidden=128)
+            readings = (3 * len(candidates) + n_probes) if choice_reads_probes else 0
+            policy_dim += readings
+            # choice_along_line: the choice is the same function of the readings around every place along the line
+            self.location = CandidateLocationNetwork(policy_dim, torch.from_numpy(candidates), hidden=128,
+                                                     along_line=(readings, candidate_places) if choice_along_line
+                                                     else None)
         else:
             raise ValueError(f"model.location={location!r}: expected 'gaussian' or 'candidates'")
         self.baseline = Baseline(policy_dim)  # b_k reads the state s_k the policy reads

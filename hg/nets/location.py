@@ -135,6 +135,38 @@ class LocationNetwork(PolicyState):
         return (mu - action.clamp(-1, 1)).pow(2).sum(-1).mean()
 
 
+class AlongLineChoice(nn.Module):
+    """Logits over candidates laid out as places along the line x directions (candidate_requests' order), the same
+    function of the readings around each place (a 1-D convolution over places; beyond the paper). The ground is
+    alike all along the line, so a pattern of touches moved one place along it asks for the same choice moved one
+    place: what the greedy planner's library gets from episodes moved along the line (planner_ceiling.py --shifts).
+    The state's last `readings` features are CandidateLocationNetwork.readings' (3 per candidate, then the probe
+    index); the rest (PCRN's state, the probe index) reaches every place alike."""
+
+    def __init__(self, in_dim: int, readings: int, places: int, directions: int, hidden: int = 64) -> None:
+        super().__init__()
+        self.places, self.directions = places, directions
+        self.local = 3 * places * directions  # per-candidate readings, placed first among the readings
+        self.start = in_dim - readings  # where the readings begin in the state
+        if self.start < 0 or readings < self.local:
+            raise ValueError(f"AlongLineChoice: {readings} readings in a state of {in_dim} cannot hold 3 x {places} "
+                             f"places x {directions} directions")
+        self.shared = mlp([in_dim - self.local, hidden])
+        self.conv = nn.Sequential(nn.Conv1d(3 * directions + hidden, hidden, 5, padding=2), nn.ELU(),
+                                  nn.Conv1d(hidden, hidden, 5, padding=2), nn.ELU(), nn.Conv1d(hidden, directions, 1))
+
+    def forward(self, state: Tensor) -> Tensor:
+        """(..., D) -> (..., places * directions) logits."""
+        lead, (p, d) = state.shape[:-1], (self.places, self.directions)
+        state = state.reshape(-1, state.shape[-1])
+        local = state[:, self.start:self.start + self.local].reshape(-1, 3, p, d)  # (B, 3, places, directions)
+        local = local.permute(0, 1, 3, 2).reshape(-1, 3 * d, p)  # channels: feature x direction; length: places
+        rest = torch.cat([state[:, :self.start], state[:, self.start + self.local:]], -1)
+        shared = self.shared(rest)[:, :, None].expand(-1, -1, p)
+        logits = self.conv(torch.cat([local, shared], 1))  # (B, directions, places)
+        return logits.transpose(1, 2).reshape(*lead, p * d)
+
+
 class CandidateLocationNetwork(PolicyState):
     """Beyond the paper: pi(a_k | s_k) a categorical choice among fixed candidate requests (C, 4), e.g. the greedy
     planner's (hg.sim.candidate_requests). A Gaussian copying a teacher that leans to either side ends up between
@@ -142,13 +174,23 @@ class CandidateLocationNetwork(PolicyState):
     sharpens it as it would narrow a Gaussian. The returned moments (the request's mean and std per component under
     the choice) are what the training loop logs for a Gaussian."""
 
-    def __init__(self, in_dim: int, candidates: Tensor, hidden: int = 128) -> None:
+    def __init__(self, in_dim: int, candidates: Tensor, hidden: int = 128, along_line: tuple[int, int] | None = None
+                 ) -> None:
+        """along_line (readings, places): the logits from AlongLineChoice, the state ending with `readings`
+        features of readings() and the candidates laid out over `places` (an MLP otherwise)."""
         super().__init__(in_dim)
         if candidates.ndim != 2 or candidates.shape[1] != 4 or len(candidates) < 2:
             raise ValueError(f"CandidateLocationNetwork: candidates of shape {tuple(candidates.shape)}, expected (C, 4) "
                              "with C >= 2")
         self.register_buffer("candidates", candidates.float())
-        self.net = mlp([in_dim, hidden, hidden, len(candidates)], last_act=False)
+        if along_line is None:
+            self.net = mlp([in_dim, hidden, hidden, len(candidates)], last_act=False)
+        else:
+            readings, places = along_line
+            if len(candidates) % places:
+                raise ValueError(f"CandidateLocationNetwork: {len(candidates)} candidates are not {places} places x "
+                                 "directions")
+            self.net = AlongLineChoice(in_dim, readings, places, len(candidates) // places, hidden=hidden // 2)
 
     def log_probs(self, state: Tensor, exclude: Tensor | None = None) -> Tensor:
         """(..., D) -> (..., C) log-probabilities of the candidates; exclude (..., C) bool: candidates never chosen
