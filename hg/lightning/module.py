@@ -376,9 +376,8 @@ class HapticGlance(pl.LightningModule):
                                     extra=extra)
         offsets = self.prior_offsets(points)
         offset = None if offsets is None else reflect(offsets[:, k].to(state.device), 1, where=mirrored)
-        choice = {} if exclude is None else {"exclude": exclude}
         action = self.location.sample(state, deterministic=deterministic, generator=generator, offset=offset,
-                                      **choice)[0]
+                                      exclude=exclude)[0]
         return reflect(action, 1, where=mirrored)
 
     def policy_extra(self, actions: Tensor | None, points: Tensor, last_only: bool = False,
@@ -648,8 +647,9 @@ class HapticGlance(pl.LightningModule):
             offsets = self.prior_offsets(rollout.points)
             offsets = None if offsets is None else reflect(offsets, 1, where=mirrored)
             actions = reflect(rollout.actions, 1, where=mirrored)  # in the view the policy drew them in
-            choice = {} if exclude is None else {"exclude": F.pad(exclude[:, :-1], (0, 0, 1, 0), value=False)}
-            log_pi, mu, sigma = self.location.log_prob_and_moments(states, actions, offsets, **choice)
+            if exclude is not None:  # state s_k excludes what probes 1..k probed (s_0 nothing)
+                exclude = F.pad(exclude[:, :-1], (0, 0, 1, 0), value=False)
+            log_pi, mu, sigma = self.location.log_prob_and_moments(states, actions, offsets, exclude)
             baseline = self.baseline(states.detach())
         h = self.hparams
         # the gradient of log N grows as 1 / std: a shrinking std must not let the policy term crowd the others

@@ -54,6 +54,13 @@ class PolicyState(nn.Module):
         return torch.cat([start, summary[:, :-1]], 1)
 
 
+def refuse_exclude(exclude: Tensor | None) -> None:
+    """Only a choice among candidates can leave some out (model.choice_reads_probes); a Gaussian has none."""
+    if exclude is not None:
+        raise ValueError("LocationNetwork: a Gaussian policy cannot exclude candidates (model.choice_reads_probes "
+                         "needs model.location: candidates)")
+
+
 class LocationNetwork(PolicyState):
     """pi(a_k | s_k) over a_k = (Py, Ux, Uy, Uz), factorised as in eq. (1): component j conditions on the
     state and on components < j. One MADE network gives all components at once (teacher forcing), so the
@@ -97,11 +104,12 @@ class LocationNetwork(PolicyState):
 
     def sample(
         self, state: Tensor, deterministic: bool | Tensor = False, generator: torch.Generator | None = None,
-        offset: Tensor | None = None,
+        offset: Tensor | None = None, exclude: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Draw a_k component by component as in eq. (1); returns the raw (unsquashed, detached) action and
         its (mu, sigma). deterministic=True gives the mean-action policy; a bool tensor of the state's batch shape
         gives it in its True rows only (the others draw the same numbers as without it)."""
+        refuse_exclude(exclude)
         shape = (*state.shape[:-1], self.action_dim)
         if isinstance(deterministic, Tensor) or not deterministic:
             eps = torch.randn(shape, generator=generator, device=state.device, dtype=state.dtype)
@@ -116,14 +124,16 @@ class LocationNetwork(PolicyState):
         # The last pass already saw every component a mu_j / sigma_j may read, so (mu, sigma) belong to action.
         return action, mu, sigma
 
-    def log_prob(self, state: Tensor, action: Tensor, offset: Tensor | None = None) -> Tensor:
+    def log_prob(self, state: Tensor, action: Tensor, offset: Tensor | None = None, exclude: Tensor | None = None
+                 ) -> Tensor:
         """log pi(a_k | s_k) summed over components, (..., D), (..., A) -> (...). The action is detached: the
         gradient flows only through mu and sigma, which gives eq. (4)/(5) and, weighted, eq. (3)."""
-        return self.log_prob_and_moments(state, action, offset)[0]
+        return self.log_prob_and_moments(state, action, offset, exclude)[0]
 
-    def log_prob_and_moments(self, state: Tensor, action: Tensor, offset: Tensor | None = None
-                             ) -> tuple[Tensor, Tensor, Tensor]:
+    def log_prob_and_moments(self, state: Tensor, action: Tensor, offset: Tensor | None = None,
+                             exclude: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
         """log_prob with the (mu, sigma) it was taken under, for a caller that needs both from one pass."""
+        refuse_exclude(exclude)
         action = action.detach()
         mu, sigma = self.distribution(state, action, offset)
         return torch.distributions.Normal(mu, sigma).log_prob(action).sum(-1), mu, sigma
@@ -147,8 +157,8 @@ class AlongLineChoice(nn.Module):
         super().__init__()
         self.places, self.directions = places, directions
         self.local = 3 * places * directions  # per-candidate readings, placed first among the readings
-        self.start = in_dim - readings  # where the readings begin in the state
-        if self.start < 0 or readings < self.local:
+        self.first_reading = in_dim - readings  # where the readings begin in the state
+        if self.first_reading < 0 or readings < self.local:
             raise ValueError(f"AlongLineChoice: {readings} readings in a state of {in_dim} cannot hold 3 x {places} "
                              f"places x {directions} directions")
         self.shared = mlp([in_dim - self.local, hidden])
@@ -159,9 +169,10 @@ class AlongLineChoice(nn.Module):
         """(..., D) -> (..., places * directions) logits."""
         lead, (p, d) = state.shape[:-1], (self.places, self.directions)
         state = state.reshape(-1, state.shape[-1])
-        local = state[:, self.start:self.start + self.local].reshape(-1, 3, p, d)  # (B, 3, places, directions)
+        first, end = self.first_reading, self.first_reading + self.local
+        local = state[:, first:end].reshape(-1, 3, p, d)  # (B, 3, places, directions)
         local = local.permute(0, 1, 3, 2).reshape(-1, 3 * d, p)  # channels: feature x direction; length: places
-        rest = torch.cat([state[:, :self.start], state[:, self.start + self.local:]], -1)
+        rest = torch.cat([state[:, :first], state[:, end:]], -1)
         shared = self.shared(rest)[:, :, None].expand(-1, -1, p)
         logits = self.conv(torch.cat([local, shared], 1))  # (B, directions, places)
         return logits.transpose(1, 2).reshape(*lead, p * d)
@@ -199,8 +210,8 @@ class CandidateLocationNetwork(PolicyState):
         return torch.log_softmax(logits if exclude is None else logits.masked_fill(exclude, -torch.inf), -1)
 
     def readings(self, actions: Tensor, points: Tensor, n_probes: int) -> tuple[Tensor, Tensor]:
-        """What the probes so far read, by candidate (beyond the paper: the state of scripts/copy_planner.py, which
-        copies the greedy planner from it). actions (B, K, 4) candidates and the points (B, K, 4) they returned
+        """What the probes so far read, by candidate (beyond the paper: scripts/copy_planner.py's state, from which
+        it copies the greedy planner, with the touch's depth in place of its distance along the ray). actions (B, K, 4) candidates and the points (B, K, 4) they returned
         (X, Y, Z, T) -> row j, after probes 1..j + 1: features (B, K, 3C + n_probes), for every candidate whether
         it was probed, whether it touched and how deep (-Z), then the next probe's index one-hot; and the probed
         candidates (B, K, C) bool."""
