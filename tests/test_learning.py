@@ -175,14 +175,16 @@ def test_candidate_policy_acts_among_its_candidates_in_the_view_it_read_and_lear
         HapticGlance(location="candidates", candidate_span=1.5)
 
 
-@pytest.mark.parametrize("along_line", [False, True])
-def test_choice_reading_the_probes_never_repeats_one_and_the_loss_reads_what_the_rollout_read(data, along_line):
+@pytest.mark.parametrize("along_line, reads_state", [(False, True), (True, True), (False, False)],
+                         ids=["mlp", "along the line", "readings only"])
+def test_choice_reading_the_probes_never_repeats_one_and_the_loss_reads_what_the_rollout_read(data, along_line,
+                                                                                              reads_state):
     """model.choice_reads_probes: the choice reads, beside PCRN's state, what each candidate read so far, and never
     probes a candidate twice; the loss pass rebuilds the states the rollout chose from, so the mean-action rollout's
     requests are the candidates the loss pass finds most likely (the probed ones excluded)."""
     model = make_model(data, location="candidates", candidate_places=3, candidate_leans=(1.0,),
                        choice_reads_probes=True, touch_set=True, policy_reads_touch_set=True,
-                       choice_along_line=along_line)
+                       choice_along_line=along_line, choice_reads_state=reads_state)
     candidates = model.location.candidates  # 9 candidates for the 4 probes of the test data
     batch = first_batch(data)
     for deterministic in (False, True):
@@ -206,6 +208,8 @@ def test_choice_reading_the_probes_never_repeats_one_and_the_loss_reads_what_the
         HapticGlance(choice_reads_probes=True)
     with pytest.raises(ValueError, match="model.choice_along_line=true .* needs model.choice_reads_probes: true"):
         HapticGlance(location="candidates", choice_along_line=True)
+    with pytest.raises(ValueError, match="model.choice_reads_state=false .* needs model.choice_reads_probes: true"):
+        HapticGlance(location="candidates", choice_reads_state=False)
 
 
 def test_a_teacher_with_held_out_poses_or_no_warmup_is_refused(data, teacher, tmp_path):

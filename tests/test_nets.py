@@ -180,6 +180,20 @@ def test_along_line_choice_moves_with_the_readings_along_the_line() -> None:
         CandidateLocationNetwork(15, candidates, along_line=(10, places))
 
 
+def test_choice_reading_from_a_feature_on_ignores_those_before_it() -> None:
+    """model.choice_reads_state=false: the choice reads the readings only, so PCRN's state (the features before
+    reads_from) changes nothing; the whole-state choice does change."""
+    candidates = torch.eye(4)[[0, 1, 2]]
+    torch.manual_seed(0)
+    state = torch.randn(2, 9)
+    other = torch.cat([torch.randn(2, 5), state[:, 5:]], -1)  # PCRN's part changed, the readings kept
+    for reads_from, changes in ((5, False), (0, True)):
+        net = CandidateLocationNetwork(9, candidates, hidden=16, reads_from=reads_from)
+        assert (not torch.allclose(net.log_probs(state), net.log_probs(other))) == changes
+    with pytest.raises(ValueError, match="reads_from=9 must lie in"):
+        CandidateLocationNetwork(9, candidates, reads_from=9)
+
+
 @pytest.mark.parametrize("extra_dim", [0, 3], ids=["summary only", "with extra features"])
 def test_location_states_match_state(extra_dim) -> None:
     net = LocationNetwork(8 + extra_dim, hidden=32)

@@ -138,7 +138,8 @@ class HapticGlance(pl.LightningModule):
                  mirror_encoder: bool = False, imitate: tuple[str, ...] = (),
                  location: Literal["gaussian", "candidates"] = "gaussian", candidate_places: int = 11,
                  candidate_span: float = 0.5, candidate_leans: tuple[float, ...] = (0.6, 1.0, 2.0),
-                 choice_reads_probes: bool = False, choice_along_line: bool = False) -> None:
+                 choice_reads_probes: bool = False, choice_along_line: bool = False,
+                 choice_reads_state: bool = True) -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -213,6 +214,9 @@ class HapticGlance(pl.LightningModule):
             raise ValueError(f"model.choice_reads_probes=true reads the probes by candidate, so it needs "
                              f"model.location: candidates and model.mirror_encoder: false, got location={location!r}, "
                              f"mirror_encoder={mirror_encoder}")
+        if not choice_reads_state and (not choice_reads_probes or choice_along_line):
+            raise ValueError("model.choice_reads_state=false leaves the choice only the readings by candidate, so it "
+                             "needs model.choice_reads_probes: true and model.choice_along_line: false")
         if choice_along_line and not choice_reads_probes:
             raise ValueError("model.choice_along_line=true convolves the readings by candidate along the line, so it "
                              "needs model.choice_reads_probes: true")
@@ -234,9 +238,11 @@ class HapticGlance(pl.LightningModule):
             readings = (3 * len(candidates) + n_probes) if choice_reads_probes else 0
             policy_dim += readings
             # choice_along_line: the choice is the same function of the readings around every place along the line
+            # choice_reads_state=false: the choice reads the readings only, as the offline copy did
             self.location = CandidateLocationNetwork(policy_dim, torch.from_numpy(candidates), hidden=128,
                                                      along_line=(readings, candidate_places) if choice_along_line
-                                                     else None)
+                                                     else None,
+                                                     reads_from=0 if choice_reads_state else policy_dim - readings)
         else:
             raise ValueError(f"model.location={location!r}: expected 'gaussian' or 'candidates'")
         self.baseline = Baseline(policy_dim)  # b_k reads the state s_k the policy reads

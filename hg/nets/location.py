@@ -185,17 +185,23 @@ class CandidateLocationNetwork(PolicyState):
     sharpens it as it would narrow a Gaussian. The returned moments (the request's mean and std per component under
     the choice) are what the training loop logs for a Gaussian."""
 
-    def __init__(self, in_dim: int, candidates: Tensor, hidden: int = 128, along_line: tuple[int, int] | None = None
-                 ) -> None:
+    def __init__(self, in_dim: int, candidates: Tensor, hidden: int = 128, along_line: tuple[int, int] | None = None,
+                 reads_from: int = 0) -> None:
         """along_line (readings, places): the logits from AlongLineChoice, the state ending with `readings`
-        features of readings() and the candidates laid out over `places` (an MLP otherwise)."""
+        features of readings() and the candidates laid out over `places` (an MLP otherwise). reads_from: the MLP
+        reads the state's features from this one on (the baseline reads them all): with the readings' first, a
+        choice that does not read PCRN's state, which holds where the training objects lay."""
         super().__init__(in_dim)
         if candidates.ndim != 2 or candidates.shape[1] != 4 or len(candidates) < 2:
             raise ValueError(f"CandidateLocationNetwork: candidates of shape {tuple(candidates.shape)}, expected (C, 4) "
                              "with C >= 2")
         self.register_buffer("candidates", candidates.float())
+        if not 0 <= reads_from < in_dim or (reads_from and along_line is not None):
+            raise ValueError(f"CandidateLocationNetwork: reads_from={reads_from} must lie in [0, {in_dim}) and be 0 "
+                             "with along_line (the convolution reads the whole state)")
+        self.reads_from = reads_from
         if along_line is None:
-            self.net = mlp([in_dim, hidden, hidden, len(candidates)], last_act=False)
+            self.net = mlp([in_dim - reads_from, hidden, hidden, len(candidates)], last_act=False)
         else:
             readings, places = along_line
             if len(candidates) % places:
@@ -206,7 +212,7 @@ class CandidateLocationNetwork(PolicyState):
     def log_probs(self, state: Tensor, exclude: Tensor | None = None) -> Tensor:
         """(..., D) -> (..., C) log-probabilities of the candidates; exclude (..., C) bool: candidates never chosen
         (those probed already, whose reading would repeat)."""
-        logits = self.net(state) / self.std_scale
+        logits = self.net(state[..., self.reads_from:]) / self.std_scale
         return torch.log_softmax(logits if exclude is None else logits.masked_fill(exclude, -torch.inf), -1)
 
     def readings(self, actions: Tensor, points: Tensor, n_probes: int) -> tuple[Tensor, Tensor]:
