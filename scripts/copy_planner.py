@@ -58,6 +58,41 @@ def teacher_meta(paths: list[str]) -> dict:
     return metas[0]
 
 
+class BayesNamer:
+    """The planner's namer over its library, as a teacher file's meta made it (split, size, shifts, mirror, seed;
+    `library` episodes in place of its size if given): it names any sequence of candidate probes, so that rows
+    which probe differently are read alike, by a namer that no policy's training shaped."""
+
+    def __init__(self, meta: dict, sim: ProbeSimulator, regions: PoseRegions, n_classes: int,
+                 library: int | None = None) -> None:
+        labels, poses = sample_episodes(regions, meta["library_split"], library or meta["library"], n_classes,
+                                        np.random.default_rng(meta["seed"] + 1))
+        readings_, labels = library_readings(sim, labels, poses, meta["places"], meta["span"], meta["leans"],
+                                             meta["shifts"], meta["mirror"])
+        self.meta, self.n_classes = meta, n_classes
+        self.n_bins = int(np.ceil(sim.scene.probe_length / meta["bin"])) + 2
+        bins = np.where(readings_ == MISS, 0, 1 + np.minimum(readings_ / meta["bin"], self.n_bins - 2)).astype(np.int64)
+        self.cells = cell_matrix(bins, labels, self.n_bins, n_classes)
+        self.library, self.labels = torch.from_numpy(readings_.T.copy()), torch.from_numpy(labels)
+
+    def probe(self, query: np.ndarray, n_probes: int, choose) -> tuple[np.ndarray, np.ndarray]:
+        """(E, N) candidates probed and classes named after each probe, for episodes whose readings of every
+        candidate are `query` (E, C): probe_episodes in chunks; choose(k, used, query) as there (None: the planner),
+        given the chunk's rows of `query`, or an (E, N) array of the candidates already chosen."""
+        out = []
+        for i in range(0, len(query), CHUNK):
+            rows = slice(i, min(i + CHUNK, len(query)))
+            pick = fixed_choices(torch.from_numpy(choose[rows])) if isinstance(choose, np.ndarray) else choose
+            out.append(probe_episodes(torch.from_numpy(query[rows]), self.library, self.cells, self.labels, n_probes,
+                                      self.n_bins, self.n_classes, self.meta["sigma"], self.meta["mismatch"], pick))
+        return tuple(map(np.concatenate, zip(*out)))
+
+
+def fixed_choices(chosen: torch.Tensor):
+    """A `choose` for probe_episodes: the candidates (Q, N) each episode probed, as a policy chose them."""
+    return lambda k, used, query: chosen[:, k]
+
+
 def state(used: torch.Tensor, query: torch.Tensor, k: int, n_probes: int, probe_length: float) -> torch.Tensor:
     """(Q, 3C + N): for every candidate whether it was probed, touched, and how far along the ray (/ U_len); and
     probe k one-hot."""
@@ -149,10 +184,7 @@ def main() -> None:
     teacher_query = torch.from_numpy(readings(sim, labels, poses, candidates))
     n_train = len(labels) - max(1, round(args.held_out * len(labels)))
 
-    library_labels, library_poses = sample_episodes(regions, meta["library_split"], args.library or meta["library"],
-                                                    n_classes, np.random.default_rng(meta["seed"] + 1))
-    library, library_labels = library_readings(sim, library_labels, library_poses, meta["places"], meta["span"],
-                                               meta["leans"], meta["shifts"], meta["mirror"])
+    namer = BayesNamer(meta, sim, regions, n_classes, args.library)
     batches = EvalEpisodes(regions, "test", args.episodes, 256, n_classes, seed=0).batches
     test_labels = np.concatenate([b["labels"].numpy() for b in batches])[:args.episodes]
     test_poses = np.concatenate([b["poses"].numpy() for b in batches])[:args.episodes]
@@ -161,7 +193,7 @@ def main() -> None:
             query = readings(arm, test_labels, test_poses, candidates)
     else:
         query = readings(sim, test_labels, test_poses, candidates)
-    print(f"read {len(labels)} teacher, {len(library)} library and {len(query)} test episodes in "
+    print(f"read {len(labels)} teacher, {namer.library.shape[1]} library and {len(query)} test episodes in "
           f"{time.time() - start:.0f} s", flush=True)
 
     start = time.time()
@@ -174,11 +206,6 @@ def main() -> None:
     print(f"fitted in {time.time() - start:.0f} s: train cross-entropy {train_ce:.3f}, held-out top-1 {top1:.3f}",
           flush=True)
 
-    n_bins = int(np.ceil(probe_length / meta["bin"])) + 2
-    bins = np.where(library == MISS, 0, 1 + np.minimum(library / meta["bin"], n_bins - 2)).astype(np.int64)
-    cells = cell_matrix(bins, library_labels, n_bins, n_classes)
-    library_t, labels_t, query_t = (torch.from_numpy(library.T.copy()), torch.from_numpy(library_labels),
-                                    torch.from_numpy(query))
     order = np.argsort(np.abs(np.linspace(-meta["span"], meta["span"], meta["places"])), kind="stable")
     runs = {"copy": (network_choice(net, n_probes, probe_length, None), len(query)),
             "copy_sampled": (network_choice(net, n_probes, probe_length, torch.Generator().manual_seed(args.seed)),
@@ -191,9 +218,7 @@ def main() -> None:
     results = {}
     for name, (choose, n) in runs.items():
         start = time.time()
-        chosen_test, named = map(np.concatenate, zip(*(
-            probe_episodes(query_t[i:min(i + CHUNK, n)], library_t, cells, labels_t, n_probes, n_bins, n_classes,
-                           meta["sigma"], meta["mismatch"], choose) for i in range(0, n, CHUNK))))
+        chosen_test, named = namer.probe(query[:n], n_probes, choose)
         r = results[name] = summary(chosen_test, named, test_labels[:n], query[:n], candidates, offsets[:n], sim)
         print(f"{name} ({n} episodes): accuracy after each probe " + " ".join(f"{a:.3f}" for a in r["accuracy"])
               + f"; {r['touches']:.2f} touches, tilt {r['tilt_deg']:.1f} deg, {r['places']:.1f} places "
@@ -201,7 +226,7 @@ def main() -> None:
     sim.close()
     print(json.dumps(results | {"top1": round(top1, 4), "train_ce": round(train_ce, 4), "teacher_episodes": n_train,
                                 "held_out": len(labels) - n_train, "episodes": len(query), "mode": args.mode,
-                                "library_episodes": len(library), "steps": args.steps, "hidden": args.hidden}))
+                                "library_episodes": namer.library.shape[1], "steps": args.steps, "hidden": args.hidden}))
 
 
 if __name__ == "__main__":

@@ -440,3 +440,42 @@ def test_accuracy_by_cell_tells_unseen_positions_from_unseen_headings(tmp_path):
     assert all(0 <= a <= 1 for r in result.values() for a in r["accuracy"] + r["accuracy_mean_action"])
     missing = run("accuracy_by_cell", "--ckpt", str(tmp_path / "nope.ckpt"))
     assert missing.returncode != 0 and "nope.ckpt: checkpoint not found" in missing.stderr
+
+
+def test_accuracy_by_cell_names_a_choice_s_probes_as_the_planner_would(tmp_path):
+    """--namer: a choice among the planner's candidates has its probes named by the planner's namer too, and the
+    planner runs on the same episodes; the namer given the planner's own choices names as the planner did."""
+    from hg.sim import PoseRegions, ProbeSimulator, sample_episodes
+
+    planner = script("planner_ceiling")
+    meta = {"n_probes": 4, "places": 3, "span": 0.5, "leans": [1.0], "library": 256, "library_split": "train",
+            "shifts": 1, "mirror": True, "sigma": 0.005, "mismatch": 1e-3, "bin": 0.01, "seed": 0}
+    labels, poses = sample_episodes(PoseRegions(), "train", 8, 4, np.random.default_rng(0))
+    planner.save_rollouts(tmp_path / "teacher.npz", labels, poses,
+                          np.tile(planner.candidate_requests(3, 0.5, [1.0])[:4], (8, 1, 1)), meta)
+    with ProbeSimulator("hg4", batch_size=64, mode="ideal", seed=0) as sim:
+        namer = script("copy_planner").BayesNamer(meta, sim, PoseRegions(), 4)
+        test_labels, test_poses = sample_episodes(PoseRegions(), "test", 64, 4, np.random.default_rng(1))
+        query = planner.readings(sim, test_labels, test_poses, planner.candidate_requests(3, 0.5, [1.0]))
+    chosen, named = namer.probe(query, 4, None)
+    assert np.array_equal(namer.probe(query, 4, chosen)[1], named)
+    assert not np.array_equal(namer.probe(query, 4, chosen[:, ::-1].copy())[0], chosen)
+    fit = subprocess.run([sys.executable, "-m", "hg.lightning.cli", "fit", "--config", str(ROOT / "configs" / "tiny.yaml"),
+                          "--trainer.max_steps", "1", "--model.location", "candidates", "--model.candidate_places",
+                          "3", "--model.candidate_leans", "[1.0]", "--model.choice_reads_probes", "true"],
+                         capture_output=True, text=True, env=ENV, cwd=tmp_path, timeout=300)
+    assert fit.returncode == 0, fit.stderr[-2000:]
+    checkpoint = next(tmp_path.glob("runs/haptic-glance/*/checkpoints/last.ckpt"))
+    proc = run("accuracy_by_cell", "--ckpt", str(checkpoint), "--episodes", "32", "--mode", "ideal", "--namer",
+               str(tmp_path / "teacher.npz"), "--planner")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    for kind, accuracy in result["planner"].items():
+        assert len(accuracy) == 4 and len(result[str(checkpoint)][kind]["accuracy_namer"]) == 4
+        assert all(0 <= a <= 1 for a in accuracy + result[str(checkpoint)][kind]["accuracy_namer"])
+    meta["places"] = 5
+    planner.save_rollouts(tmp_path / "other.npz", labels, poses,
+                          np.tile(planner.candidate_requests(5, 0.5, [1.0])[:4], (8, 1, 1)), meta)
+    other = run("accuracy_by_cell", "--ckpt", str(checkpoint), "--episodes", "32", "--mode", "ideal", "--namer",
+                str(tmp_path / "other.npz"))
+    assert other.returncode != 0 and "its 9 candidates are not the --namer teacher's 15" in other.stderr

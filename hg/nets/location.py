@@ -217,10 +217,10 @@ class CandidateLocationNetwork(PolicyState):
 
     def readings(self, actions: Tensor, points: Tensor, n_probes: int) -> tuple[Tensor, Tensor]:
         """What the probes so far read, by candidate (beyond the paper: scripts/copy_planner.py's state, from which
-        it copies the greedy planner, with the touch's depth in place of its distance along the ray). actions (B, K, 4) candidates and the points (B, K, 4) they returned
-        (X, Y, Z, T) -> row j, after probes 1..j + 1: features (B, K, 3C + n_probes), for every candidate whether
-        it was probed, whether it touched and how deep (-Z), then the next probe's index one-hot; and the probed
-        candidates (B, K, C) bool."""
+        it copies the greedy planner, with the touch's depth in place of its distance along the ray). actions
+        (B, K, 4) candidates and the points (B, K, 4) they returned (X, Y, Z, T) -> row j, after probes 1..j + 1:
+        features (B, K, 3C + n_probes), for every candidate whether it was probed, whether it touched and how deep
+        (-Z), then the next probe's index one-hot; and the probed candidates (B, K, C) bool."""
         chosen = F.one_hot(self.index_of(actions), len(self.candidates)).float()  # (B, K, C)
         touched = chosen * (points[..., 3:] > 0.5).float()
         probed = chosen.cumsum(1) > 0
