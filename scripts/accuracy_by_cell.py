@@ -10,14 +10,16 @@ Is it where the probes went, or how the model's classifier reads them? With --na
 planner's candidates only, model.location: candidates) the stochastic rollouts' probe sequences are also named by
 the greedy planner's namer over its training library (`copy_planner.py`'s BayesNamer, the teacher files' library:
 no held-out pose), which no policy's training shaped (`accuracy_namer`); with --planner also the planner itself on
-the same episodes (`planner`, slow: ~0.5 s an episode).
+the same episodes (`planner`, slow: ~0.5 s an episode), and the model's classifiers reading the planner's probes
+(`accuracy_on_planner_probes`): a classifier that reads those well where its own policy's probes fail is held back by
+its policy.
 
     .venv/bin/python scripts/accuracy_by_cell.py --ckpt A.ckpt B.ckpt --mode arm
     .venv/bin/python scripts/accuracy_by_cell.py --ckpt A.ckpt --mode arm \
         --namer data/planner/train_s10.npz data/planner/train_s20.npz --planner
 
 Last line: JSON {"<ckpt>": {"unseen_position": {"episodes": .., "accuracy": [..], "accuracy_mean_action": [..]
-[, "accuracy_namer": [..]]}, "unseen_heading": {...}}, ... [, "planner": {"unseen_position": [..], ...}], "split": ..,
+[, "accuracy_namer": [..], "accuracy_on_planner_probes": [..]]}, "unseen_heading": {...}}, ... [, "planner": {"unseen_position": [..], ...}], "split": ..,
 "mode": .., "episodes": ..}.
 """
 from __future__ import annotations
@@ -104,12 +106,12 @@ def main() -> None:
     if episodes < 1:
         parser.error(f"--episodes {episodes}: must be >= 1")
     torch.set_num_threads(1)
-    results, namer = {}, None
+    results, namer, planner_chosen = {}, None, None
     if args.namer:
         namer, query, candidates, kind_of = planner_namer(args.namer, args.split, episodes, args.mode)
         if args.planner:
             start = time.time()
-            named = namer.probe(query, namer.meta["n_probes"], None)[1]
+            planner_chosen, named = namer.probe(query, namer.meta["n_probes"], None)
             results["planner"] = by_kind(named == query_labels(args.split, episodes)[:, None], kind_of)
             print(f"planner: {results['planner']} ({time.time() - start:.0f} s)", flush=True)
     for ckpt in args.ckpt:
@@ -124,8 +126,8 @@ def main() -> None:
         data = ProbeDataModule(mode=args.mode, n_probes=model.hparams.n_probes)
         batches = EvalEpisodes(data.regions, args.split, episodes, 256, data.n_classes, seed=0).batches
         model.sim = data.make_simulator()
-        correct, chosen = {False: [], True: []}, []
-        kinds = []
+        correct, chosen, on_planner = {False: [], True: []}, [], []
+        kinds, first = [], 0
         with torch.no_grad():
             for i, batch in enumerate(batches):
                 kinds.append(pose_kinds(data.regions, batch["poses"].numpy(), args.split))
@@ -135,6 +137,12 @@ def main() -> None:
                     correct[deterministic].append((logits.argmax(-1) == batch["labels"][:, None]).numpy())
                     if namer is not None and not deterministic:
                         chosen.append(model.location.index_of(rollout.actions).numpy())
+                if planner_chosen is not None:  # the model's classifiers reading the planner's probes
+                    requests = model.location.candidates[planner_chosen[first:first + len(batch["labels"])]]
+                    rollout = model.rollout(batch["labels"], batch["poses"], int(batch["seed"]), requests=requests)
+                    _, logits = model.evaluate(rollout, batch["labels"], learn_policy=False)
+                    on_planner.append((logits.argmax(-1) == batch["labels"][:, None]).numpy())
+                first += len(batch["labels"])
         model.sim.close()
         kind = np.concatenate(kinds)
         stochastic, mean = (np.concatenate(correct[d]) for d in (False, True))
@@ -147,6 +155,9 @@ def main() -> None:
             named = namer.probe(query, namer.meta["n_probes"], np.concatenate(chosen))[1]
             for name, accuracy in by_kind(named == query_labels(args.split, episodes)[:, None], kind).items():
                 results[str(ckpt)][name]["accuracy_namer"] = accuracy
+        if on_planner:
+            for name, accuracy in by_kind(np.concatenate(on_planner), kind).items():
+                results[str(ckpt)][name]["accuracy_on_planner_probes"] = accuracy
         for name, r in results[str(ckpt)].items():
             n = len(r["accuracy"])
             print(f"{ckpt}: {name} ({r['episodes']} episodes): after {(n + 1) // 2} {r['accuracy'][(n - 1) // 2]:.3f}, "

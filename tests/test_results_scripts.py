@@ -471,8 +471,9 @@ def test_accuracy_by_cell_names_a_choice_s_probes_as_the_planner_would(tmp_path)
     assert proc.returncode == 0, proc.stderr[-2000:]
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     for kind, accuracy in result["planner"].items():
-        assert len(accuracy) == 4 and len(result[str(checkpoint)][kind]["accuracy_namer"]) == 4
-        assert all(0 <= a <= 1 for a in accuracy + result[str(checkpoint)][kind]["accuracy_namer"])
+        model = result[str(checkpoint)][kind]
+        assert len(accuracy) == 4 and len(model["accuracy_namer"]) == len(model["accuracy_on_planner_probes"]) == 4
+        assert all(0 <= a <= 1 for a in accuracy + model["accuracy_namer"] + model["accuracy_on_planner_probes"])
     meta["places"] = 5
     planner.save_rollouts(tmp_path / "other.npz", labels, poses,
                           np.tile(planner.candidate_requests(5, 0.5, [1.0])[:4], (8, 1, 1)), meta)
