@@ -211,6 +211,12 @@ ROWS = {
         "so far, never one twice, copying the planner for 8000 steps, then the hybrid rule + wide touch set, "
         f"temperature falling to a tenth, 16000 steps, learning rate falling to 5%, {FINAL_TOUCH_SET}, both touch "
         "sets reading an episode and its mirror image across the line alike (beyond the paper)"),
+    "pcrn_fc_candidates_reads_probes_random_share_imitate_planner_final_mirror": Row(
+        "PCRN-FC+ choosing among the greedy planner's candidate probes from PCRN's state and what each candidate read "
+        "so far, never one twice, copying the planner for 8000 steps, then the hybrid rule + wide touch set with a "
+        "quarter of the episodes probed with random candidates for the classifiers, temperature falling to a tenth, "
+        f"16000 steps, learning rate falling to 5%, {FINAL_TOUCH_SET}, both touch sets reading an episode and its "
+        "mirror image across the line alike (beyond the paper)"),
     "pcrn_fc_candidates_along_line_imitate_planner_final_mirror": Row(
         "PCRN-FC+ choosing among the greedy planner's candidate probes from PCRN's state and what each candidate read "
         "so far, the same function of the readings at every place along the line, never one twice, copying the "

@@ -826,3 +826,35 @@ def test_non_finite_policy_output_is_reported_with_its_step(data):
     batch = first_batch(data)
     with pytest.raises(FloatingPointError, match=r"probe 1, global step 0"):
         model.rollout(batch["labels"], batch["poses"], 0)
+
+
+def test_random_probe_episodes_are_probed_where_drawn_and_train_the_classifiers_only(data):
+    """model.random_probe_share: the last episodes of a training batch are probed with distinct candidates drawn
+    at random, the others as the policy alone would; the policy term leaves the random ones out."""
+    model = make_model(data, location="candidates", candidate_places=3, candidate_leans=(1.0,),
+                       choice_reads_probes=True, random_probe_share=0.25)
+    batch = first_batch(data)
+    rows = torch.arange(8) >= 6
+    requests = model.random_candidates(rows, int(batch["seed"]))
+    assert requests[:6].isnan().all() and requests[6:].isfinite().all()
+    index = model.location.index_of(requests[6:])
+    assert all(len(set(row.tolist())) == data.n_probes for row in index)  # distinct
+    mixed = model.rollout(batch["labels"], batch["poses"], int(batch["seed"]), requests=requests)
+    alone = model.rollout(batch["labels"], batch["poses"], int(batch["seed"]))
+    torch.testing.assert_close(mixed.actions[6:], requests[6:])
+    torch.testing.assert_close(mixed.actions[:6], alone.actions[:6])  # the policy's episodes are untouched
+    assert not torch.equal(mixed.actions[6:], alone.actions[6:])
+    # the policy term over the sampled episodes only: changing a random episode's reward changes nothing
+    terms, _ = model.evaluate(mixed, batch["labels"], sampled=~rows)
+    other = batch["labels"].clone()
+    other[7] = (other[7] + 1) % data.n_classes
+    terms_other, _ = model.evaluate(mixed, other, sampled=~rows)
+    assert terms["loss_policy"].item() == pytest.approx(terms_other["loss_policy"].item())
+    assert terms["loss_ce"].item() != pytest.approx(terms_other["loss_ce"].item())
+    trainer = pl.Trainer(max_steps=2, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                         enable_model_summary=False, limit_val_batches=0, accelerator="cpu")
+    trainer.fit(model, datamodule=data)  # a training step with random episodes runs
+    with pytest.raises(ValueError, match="model.random_probe_share=0.5 probes with candidates drawn at random"):
+        HapticGlance(random_probe_share=0.5)
+    with pytest.raises(ValueError, match="model.random_probe_share=0.6: must be in"):
+        HapticGlance(location="candidates", random_probe_share=0.6, mean_action_share=0.5)

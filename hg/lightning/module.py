@@ -139,7 +139,7 @@ class HapticGlance(pl.LightningModule):
                  location: Literal["gaussian", "candidates"] = "gaussian", candidate_places: int = 11,
                  candidate_span: float = 0.5, candidate_leans: tuple[float, ...] = (0.6, 1.0, 2.0),
                  choice_reads_probes: bool = False, choice_along_line: bool = False,
-                 choice_reads_state: bool = True) -> None:
+                 choice_reads_state: bool = True, random_probe_share: float = 0.0) -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -298,6 +298,12 @@ class HapticGlance(pl.LightningModule):
         if not 0.0 <= mean_action_share < 1.0:
             raise ValueError(f"model.mean_action_share={mean_action_share}: must be in [0, 1) (the share of each "
                              "training batch probed with the policy's mean action; the rest trains the policy)")
+        if not 0.0 <= random_probe_share < 1.0 or mean_action_share + random_probe_share >= 1.0:
+            raise ValueError(f"model.random_probe_share={random_probe_share}: must be in [0, 1) and leave, beside "
+                             f"model.mean_action_share={mean_action_share}, some episodes to train the policy")
+        if random_probe_share and location != "candidates":
+            raise ValueError(f"model.random_probe_share={random_probe_share} probes with candidates drawn at random, "
+                             f"so it needs model.location: candidates, got {location!r}")
         if prior_anchor < 0.0:
             raise ValueError(f"model.prior_anchor={prior_anchor}: must be >= 0 (the weight of the policy mean's squared "
                              "distance from its prior; 0: none)")
@@ -554,8 +560,9 @@ class HapticGlance(pl.LightningModule):
     def rollout(self, labels: Tensor, poses: Tensor, seed: int, deterministic: bool | Tensor = False,
                 follow_scan: bool = False, requests: Tensor | None = None) -> Rollout:
         """Probe B episodes N times with the current policy (or the fixed scan: follow_scan, or the given (B, N, 4)
-        requests: a teacher's); the batch seed drives sampling and sensor noise. deterministic: the mean action, in
-        every episode or in the (B,) True ones."""
+        requests: a teacher's, or some episodes' with the others' rows NaN, left to the policy); the batch seed
+        drives sampling and sensor noise. deterministic: the mean action, in every episode or in the (B,) True
+        ones."""
         sim, n = self.sim, self.hparams.n_probes
         batch = len(labels)
         sim.reset(labels.cpu().numpy(), poses.cpu().numpy(), seed=seed)
@@ -563,10 +570,13 @@ class HapticGlance(pl.LightningModule):
         actions, points = torch.zeros(batch, n, 4), torch.zeros(batch, n, 4)
         reached = torch.ones(batch, n, dtype=torch.bool)
         memory = rep_sum = None  # the encoder's memory of the probes so far, and the sum of its outputs
+        given = None if requests is None else torch.isfinite(requests.cpu()).all(-1).all(-1)  # (B,) episodes given
+        policy_probes = given is None or not given.all()
         for k in range(n):
-            action = (requests[:, k] if requests is not None
-                      else self.next_actions(k, points, rep_sum, deterministic, generator, follow_scan,
-                                             actions)).cpu()
+            action = (self.next_actions(k, points, rep_sum, deterministic, generator, follow_scan, actions).cpu()
+                      if policy_probes else requests[:, k].cpu())
+            if given is not None and policy_probes:
+                action = torch.where(given[:, None], requests[:, k].cpu().nan_to_num(), action)
             if not torch.isfinite(action).all():
                 raise FloatingPointError(f"non-finite probe request from the '{self.hparams.policy}' policy at probe "
                                          f"{k + 1}, global step {self.global_step}")
@@ -576,7 +586,7 @@ class HapticGlance(pl.LightningModule):
             points[:, k, :3] *= self.hparams.point_scale  # the policy must see what evaluate() will see
             if sim.arm is not None:
                 reached[:, k] = torch.from_numpy(achieved(result.pose_error))
-            if self.hparams.policy == "learned" and not follow_scan and requests is None and k + 1 < n:  # once
+            if self.hparams.policy == "learned" and not follow_scan and policy_probes and k + 1 < n:  # once
                 # (evaluate() redoes the whole sequence with gradients); the last one is never read by the policy
                 views = self.encoder_views(action.clamp(-1, 1).to(self.device),
                                            self.encoder_points(points[:, :k + 1])[:, k].to(self.device))
@@ -696,14 +706,22 @@ class HapticGlance(pl.LightningModule):
             n_mean = min(round(self.hparams.mean_action_share * len(labels)), len(labels) - 1)  # >= 1 sampled
             mean_rows = torch.arange(len(labels)) < n_mean
         poses, requests, learn_policy = batch["poses"], None, not warming_up
+        # beyond the paper: a share of the episodes probed with distinct candidates drawn at random trains the
+        # classifiers only, so that they also read probes their policy rarely sends (as it may on held-out poses)
+        random_rows = None
+        if self.hparams.policy == "learned" and not warming_up and self.hparams.random_probe_share:
+            n_random = max(1, round(self.hparams.random_probe_share * len(labels)))
+            random_rows = torch.arange(len(labels)) >= len(labels) - n_random
+            requests = self.random_candidates(random_rows, int(batch["seed"]))
         if warming_up and self.teacher is not None:  # the teacher's episodes in turn, with the requests it chose
             rows = (self.global_step * len(labels) + torch.arange(len(labels))) % len(self.teacher["labels"])
             labels, poses, requests = (self.teacher[k][rows].to(labels.device) for k in ("labels", "poses", "requests"))
             learn_policy = "imitate"
         rollout = self.rollout(labels, poses, int(batch["seed"]), follow_scan=warming_up and requests is None,
                                deterministic=False if mean_rows is None else mean_rows, requests=requests)
+        held = [rows for rows in (mean_rows, random_rows) if rows is not None]  # episodes not training the policy
         terms, _ = self.evaluate(rollout, labels, learn_policy=learn_policy,
-                                 sampled=None if mean_rows is None else ~mean_rows.to(labels.device))
+                                 sampled=~torch.stack(held).any(0).to(labels.device) if held else None)
         if not torch.isfinite(terms["loss"]):
             raise FloatingPointError(f"non-finite loss {terms['loss'].item()} at global step {self.global_step} "
                                      f"(terms: { {k: round(v.item(), 4) for k, v in terms.items()} })")
@@ -713,6 +731,16 @@ class HapticGlance(pl.LightningModule):
         self.log("train/reach_rate", rollout.reached.float().mean(), batch_size=size)
         self.log("train/lr", self.optimizers().param_groups[0]["lr"], batch_size=size)
         return terms["loss"]
+
+    def random_candidates(self, rows: Tensor, seed: int) -> Tensor:
+        """(B, N, 4) requests: in the True rows of rows (B,) N distinct candidates drawn at random (from the batch
+        seed), NaN elsewhere (left to the policy)."""
+        generator = torch.Generator().manual_seed(seed + 7919)  # not the rollout's own draws
+        candidates = self.location.candidates.cpu()
+        requests = torch.full((len(rows), self.hparams.n_probes, 4), torch.nan)
+        for row in rows.nonzero()[:, 0]:
+            requests[row] = candidates[torch.randperm(len(candidates), generator=generator)[:self.hparams.n_probes]]
+        return requests
 
     def std_schedule(self) -> float:
         """The factor on the policy's std at this step. Beyond the paper: it falls linearly from 1 when the policy
