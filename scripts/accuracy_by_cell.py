@@ -54,19 +54,9 @@ def by_kind(correct: np.ndarray, kind: np.ndarray) -> dict:
             for name, rows in (("unseen_position", kind), ("unseen_heading", ~kind)) if rows.any()}
 
 
-def table_episodes(split: str, episodes: int):
-    """The split's table episodes (data.eval_seed 0), as the rollouts read them, and their pose regions."""
-    data = ProbeDataModule()
-    return EvalEpisodes(data.regions, split, episodes, 256, data.n_classes, seed=0).batches, data.regions
-
-
-def query_labels(split: str, episodes: int) -> np.ndarray:
-    return np.concatenate([b["labels"].numpy() for b in table_episodes(split, episodes)[0]])
-
-
 def planner_namer(teacher: list[str], split: str, episodes: int, mode: str):
     """The planner's namer over the teacher files' library, the table episodes' readings of every candidate (in
-    `mode`), the candidates, and each episode's kind of held-out pose."""
+    `mode`), the candidates, and the episodes' classes and kinds of held-out pose."""
     from copy_planner import BayesNamer, teacher_meta
     from planner_ceiling import readings
     for path in teacher:
@@ -74,7 +64,9 @@ def planner_namer(teacher: list[str], split: str, episodes: int, mode: str):
             raise SystemExit(f"--namer {path}: teacher file not found (write one with planner_ceiling.py "
                              "--save-rollouts)")
     meta = teacher_meta(teacher)
-    batches, regions = table_episodes(split, episodes)
+    data = ProbeDataModule()
+    regions = data.regions
+    batches = EvalEpisodes(regions, split, episodes, 256, data.n_classes, seed=0).batches  # as the rollouts read them
     labels = np.concatenate([b["labels"].numpy() for b in batches])
     poses = np.concatenate([b["poses"].numpy() for b in batches])
     candidates = candidate_requests(meta["places"], meta["span"], meta["leans"])
@@ -85,7 +77,7 @@ def planner_namer(teacher: list[str], split: str, episodes: int, mode: str):
         query = readings(sim, labels, poses, candidates)
     print(f"read the namer's library ({namer.library.shape[1]} episodes) and {len(query)} episodes' candidates in "
           f"{time.time() - start:.0f} s", flush=True)
-    return namer, query, candidates, pose_kinds(regions, poses, split)
+    return namer, query, candidates, labels, pose_kinds(regions, poses, split)
 
 
 def main() -> None:
@@ -108,11 +100,11 @@ def main() -> None:
     torch.set_num_threads(1)
     results, namer, planner_chosen = {}, None, None
     if args.namer:
-        namer, query, candidates, kind_of = planner_namer(args.namer, args.split, episodes, args.mode)
+        namer, query, candidates, labels, kind_of = planner_namer(args.namer, args.split, episodes, args.mode)
         if args.planner:
             start = time.time()
             planner_chosen, named = namer.probe(query, namer.meta["n_probes"], None)
-            results["planner"] = by_kind(named == query_labels(args.split, episodes)[:, None], kind_of)
+            results["planner"] = by_kind(named == labels[:, None], kind_of)
             print(f"planner: {results['planner']} ({time.time() - start:.0f} s)", flush=True)
     for ckpt in args.ckpt:
         model = HapticGlance.load_from_checkpoint(ckpt, map_location="cpu").eval()
@@ -153,7 +145,7 @@ def main() -> None:
             for name, rows in (("unseen_position", kind), ("unseen_heading", ~kind)) if rows.any()}
         if namer is not None:
             named = namer.probe(query, namer.meta["n_probes"], np.concatenate(chosen))[1]
-            for name, accuracy in by_kind(named == query_labels(args.split, episodes)[:, None], kind).items():
+            for name, accuracy in by_kind(named == labels[:, None], kind).items():
                 results[str(ckpt)][name]["accuracy_namer"] = accuracy
         if on_planner:
             for name, accuracy in by_kind(np.concatenate(on_planner), kind).items():

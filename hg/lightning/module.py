@@ -570,13 +570,14 @@ class HapticGlance(pl.LightningModule):
         actions, points = torch.zeros(batch, n, 4), torch.zeros(batch, n, 4)
         reached = torch.ones(batch, n, dtype=torch.bool)
         memory = rep_sum = None  # the encoder's memory of the probes so far, and the sum of its outputs
-        given = None if requests is None else torch.isfinite(requests.cpu()).all(-1).all(-1)  # (B,) episodes given
+        requests = None if requests is None else requests.cpu()
+        given = None if requests is None else torch.isfinite(requests).all(-1).all(-1)  # (B,) episodes given
         policy_probes = given is None or not given.all()
         for k in range(n):
-            action = (self.next_actions(k, points, rep_sum, deterministic, generator, follow_scan, actions).cpu()
-                      if policy_probes else requests[:, k].cpu())
-            if given is not None and policy_probes:
-                action = torch.where(given[:, None], requests[:, k].cpu().nan_to_num(), action)
+            action = requests[:, k] if requests is not None else None
+            if policy_probes:
+                chosen = self.next_actions(k, points, rep_sum, deterministic, generator, follow_scan, actions).cpu()
+                action = chosen if action is None else torch.where(given[:, None], action, chosen)
             if not torch.isfinite(action).all():
                 raise FloatingPointError(f"non-finite probe request from the '{self.hparams.policy}' policy at probe "
                                          f"{k + 1}, global step {self.global_step}")
