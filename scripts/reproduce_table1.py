@@ -228,6 +228,12 @@ ROWS = {
         "PCRN's state), never one twice, copying the planner for 8000 steps, then the hybrid rule + wide touch set, "
         f"temperature falling to a tenth, 16000 steps, learning rate falling to 5%, {FINAL_TOUCH_SET}, both touch "
         "sets reading an episode and its mirror image across the line alike (beyond the paper)"),
+    "pcrn_fc_candidates_readings_only_along_line_classifier_imitate_planner_final_mirror": Row(
+        "PCRN-FC+ choosing among the greedy planner's candidate probes from what each candidate read so far alone (not "
+        "PCRN's state), never one twice, copying the planner for 8000 steps, then the hybrid rule + wide touch set + "
+        "a classifier of the readings by candidate the same along the line, temperature falling to a tenth, 16000 "
+        f"steps, learning rate falling to 5%, {FINAL_TOUCH_SET}, the touch sets and that classifier reading an "
+        "episode and its mirror image across the line alike (beyond the paper)"),
     "pcrn_fc_candidates_imitate_planner_final_mirror_encoder": Row(
         "PCRN-FC+ choosing among the greedy planner's candidate probes, copying the planner for 8000 steps, then the "
         f"hybrid rule + wide touch set, temperature falling to a tenth, 16000 steps, learning rate falling to 5%, "

@@ -212,6 +212,28 @@ def test_choice_reading_the_probes_never_repeats_one_and_the_loss_reads_what_the
         HapticGlance(location="candidates", choice_reads_state=False)
 
 
+def test_along_line_classifier_is_added_to_every_prediction_and_learns_from_the_cross_entropy(data):
+    """model.along_line_classifier: its logits of the readings by candidate are added to each prediction, the one
+    after the last probe (the final touch set's) too, and the cross-entropy trains it."""
+    model = make_model(data, location="candidates", candidate_places=3, candidate_leans=(1.0,),
+                       choice_reads_probes=True, touch_set=True, final_touch_set=True, along_line_classifier=True)
+    batch = first_batch(data)
+    rollout = model.rollout(batch["labels"], batch["poses"], 1)
+    terms, logits = model.evaluate(rollout, batch["labels"])
+    terms["loss_ce"].backward()
+    assert model.along_line_classifier.conv[0].weight.grad.abs().sum() > 0
+    readings, _ = model.location.readings(rollout.actions, rollout.points, data.n_probes)
+    added = model.along_line_classifier(readings)
+    with torch.no_grad():
+        model.along_line_classifier.head[-1].weight.zero_()
+        model.along_line_classifier.head[-1].bias.zero_()
+    _, without = model.evaluate(rollout, batch["labels"])
+    torch.testing.assert_close(logits - without, added)
+    assert added[:, -1].abs().sum() > 0
+    with pytest.raises(ValueError, match="model.along_line_classifier=true .* needs model.location: candidates"):
+        HapticGlance(along_line_classifier=True)
+
+
 def test_a_teacher_with_held_out_poses_or_no_warmup_is_refused(data, teacher, tmp_path):
     with np.load(teacher) as f:
         episodes = dict(f)

@@ -6,6 +6,7 @@ import torch
 
 from hg.nets import (
     DGCNN,
+    AlongLineClassifier,
     PCRN,
     P2CARB,
     FCClassifier,
@@ -178,6 +179,42 @@ def test_along_line_choice_moves_with_the_readings_along_the_line() -> None:
         assert torch.allclose(shift, shift[:, :1, :1].expand_as(shift), atol=1e-5) == moves
     with pytest.raises(ValueError, match="AlongLineChoice: 10 readings in a state of 15 cannot hold 3 x 11"):
         CandidateLocationNetwork(15, candidates, along_line=(10, places))
+
+
+def test_along_line_classifier_reads_probes_moved_along_the_line_or_mirrored_alike() -> None:
+    """model.along_line_classifier: the same readings by candidate moved any number of places along the line (up to
+    its ends) give the same logits, mirrored too (+x and -x leans swapped); other readings give others, and a
+    prediction reads only the probes so far."""
+    from hg.sim import candidate_requests
+
+    places, leans = 11, [0.6, 1.0]
+    candidates = torch.from_numpy(candidate_requests(places, 0.5, leans)).float()
+    directions = 1 + 2 * len(leans)
+    choice = CandidateLocationNetwork(8, candidates)
+    net = AlongLineClassifier(4, places, directions, hidden=16, mirror=True)
+    place, direction = torch.tensor([[0, 2, 1, 3] * 2]), torch.tensor([[0, 3, 1, 4, 2, 0, 4, 3]])  # 8 probes
+    points = torch.rand(1, 8, 4) * torch.tensor([1.0, 1.0, -1.0, 1.0])
+    points[..., 3] = torch.tensor([1.0, 0, 1, 1, 0, 1, 1, 0])
+
+    def logits(place, direction, points=points):
+        return net(choice.readings(candidates[place * directions + direction], points, 8)[0])
+
+    first = logits(place, direction)
+    for moved in range(1, places - 3):  # the probes span places 0..3
+        torch.testing.assert_close(logits(place + moved, direction), first)
+    mirrored = direction + torch.where(direction % 2 == 1, 1, -1) * (direction > 0)  # +x <-> -x of each lean
+    torch.testing.assert_close(logits(place, mirrored), first)
+    unmirrored = AlongLineClassifier(4, places, directions, hidden=16)
+    unmirrored.load_state_dict(net.state_dict())
+    assert not torch.allclose(unmirrored(choice.readings(candidates[place * directions + mirrored], points, 8)[0]),
+                              unmirrored(choice.readings(candidates[place * directions + direction], points, 8)[0]))
+    deeper = points.clone()
+    deeper[:, 5, 2] -= 0.5  # probe 6 touched deeper: predictions 6.. change, those before do not
+    other = logits(place, direction, deeper)
+    torch.testing.assert_close(other[:, :5], first[:, :5])
+    assert not torch.allclose(other[:, 5:], first[:, 5:])
+    with pytest.raises(ValueError, match="AlongLineClassifier: 4 directions"):
+        AlongLineClassifier(4, places, 4)
 
 
 def test_choice_reading_from_a_feature_on_ignores_those_before_it() -> None:

@@ -11,8 +11,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from hg.lightning.data import load_teacher
-from hg.nets import (PCRN, Baseline, CandidateLocationNetwork, FCClassifier, LinearClassifier, LocationNetwork,
-                     LSTMEncoder, NClassClassifier, TouchSetClassifier, left_of_line, reflect)
+from hg.nets import (PCRN, AlongLineClassifier, Baseline, CandidateLocationNetwork, FCClassifier, LinearClassifier,
+                     LocationNetwork, LSTMEncoder, NClassClassifier, TouchSetClassifier, left_of_line, reflect)
 from hg.sim import ProbeSimulator, candidate_requests
 from hg.sim.robot import achieved
 
@@ -139,7 +139,8 @@ class HapticGlance(pl.LightningModule):
                  location: Literal["gaussian", "candidates"] = "gaussian", candidate_places: int = 11,
                  candidate_span: float = 0.5, candidate_leans: tuple[float, ...] = (0.6, 1.0, 2.0),
                  choice_reads_probes: bool = False, choice_along_line: bool = False,
-                 choice_reads_state: bool = True, random_probe_share: float = 0.0) -> None:
+                 choice_reads_state: bool = True, random_probe_share: float = 0.0,
+                 along_line_classifier: bool = False) -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -245,6 +246,14 @@ class HapticGlance(pl.LightningModule):
                                                      reads_from=0 if choice_reads_state else policy_dim - readings)
         else:
             raise ValueError(f"model.location={location!r}: expected 'gaussian' or 'candidates'")
+        if along_line_classifier and location != "candidates":
+            raise ValueError(f"model.along_line_classifier=true reads the probes by candidate, so it needs "
+                             f"model.location: candidates, got {location!r}")
+        # beyond the paper: the logits of a classifier of the readings by candidate, the same along the line, are added
+        # to every prediction (mirrored alike with model.touch_set_mirror)
+        self.along_line_classifier = AlongLineClassifier(
+            n_classes, candidate_places, len(candidates) // candidate_places,
+            mirror=touch_set_mirror) if along_line_classifier else None
         self.baseline = Baseline(policy_dim)  # b_k reads the state s_k the policy reads
         self.line_x = 0.0  # where the probe line is (set with the sim)
         self.sim: ProbeSimulator | None = None
@@ -654,6 +663,9 @@ class HapticGlance(pl.LightningModule):
         if self.final_touch_set is not None:  # replaces the prediction after the last probe
             final = self.final_touch_set.read(self.final_touch_set.pooled(rollout.points, last_only=True))
             logits = torch.cat([logits[:, :-1], final], 1)
+        if self.along_line_classifier is not None:
+            readings, _ = self.location.readings(rollout.actions, rollout.points, self.hparams.n_probes)
+            logits = logits + self.along_line_classifier(readings)
         log_pi = baseline = None
         if self.hparams.policy == "learned" and learn_policy:
             # s_k from which request k was drawn; beyond the paper, the policy may read it without training the encoder

@@ -1,6 +1,6 @@
 """Plain torch networks of the reinforcement haptic glance framework (no Lightning here)."""
 
-from hg.nets.heads import Baseline, FCClassifier, LinearClassifier, NClassClassifier
+from hg.nets.heads import AlongLineClassifier, Baseline, FCClassifier, LinearClassifier, NClassClassifier
 from hg.nets.location import CandidateLocationNetwork, LocationNetwork
 from hg.nets.lstm import LSTMEncoder
 from hg.nets.mirror import left_of_line, reflect
@@ -10,6 +10,7 @@ from hg.nets.pcrn import PCRN
 from hg.nets.pointcloud import DGCNN, PointNet, TouchSetClassifier
 
 __all__ = [
+    "AlongLineClassifier",
     "DGCNN",
     "PCRN",
     "P2CARB",

@@ -145,6 +145,13 @@ class LocationNetwork(PolicyState):
         return (mu - action.clamp(-1, 1)).pow(2).sum(-1).mean()
 
 
+def by_place(readings: Tensor, places: int, directions: int) -> Tensor:
+    """CandidateLocationNetwork.readings' per-candidate features (B, 3C) -> (B, 3 x directions, places): channels
+    feature x direction, length the places along the line, as a 1-D convolution along the line reads them."""
+    local = readings.reshape(-1, 3, places, directions)
+    return local.permute(0, 1, 3, 2).reshape(-1, 3 * directions, places)
+
+
 class AlongLineChoice(nn.Module):
     """Logits over candidates laid out as places along the line x directions (candidate_requests' order), the same
     function of the readings around each place (a 1-D convolution over places; beyond the paper). The ground is
@@ -170,8 +177,7 @@ class AlongLineChoice(nn.Module):
         lead, (p, d) = state.shape[:-1], (self.places, self.directions)
         state = state.reshape(-1, state.shape[-1])
         first, end = self.first_reading, self.first_reading + self.local
-        local = state[:, first:end].reshape(-1, 3, p, d)  # (B, 3, places, directions)
-        local = local.permute(0, 1, 3, 2).reshape(-1, 3 * d, p)  # channels: feature x direction; length: places
+        local = by_place(state[:, first:end], p, d)
         rest = torch.cat([state[:, :first], state[:, end:]], -1)
         shared = self.shared(rest)[:, :, None].expand(-1, -1, p)
         logits = self.conv(torch.cat([local, shared], 1))  # (B, directions, places)
