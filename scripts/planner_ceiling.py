@@ -53,6 +53,7 @@ sys.path.insert(0, str(ROOT))
 
 from hg.atomic import write_atomic  # noqa: E402
 from hg.provenance import commit  # noqa: E402
+from hg.nets.mirror import mirrored_directions  # noqa: E402
 from hg.sim import SPLITS, PoseRegions, ProbeSimulator, candidate_requests, sample_episodes  # noqa: E402
 
 MISS = -1.0  # the reading of a probe that touched nothing
@@ -86,7 +87,7 @@ def library_readings(sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray,
     wide = candidate_requests(places + 2 * shifts, span + shifts * step, leans)  # the same places, `shifts` more each way
     full = readings(sim, labels, poses, wide).reshape(len(labels), places + 2 * shifts, n_directions)
     metres = step * 0.5 * (sim.scene.probe_y[1] - sim.scene.probe_y[0])  # one place step along the line
-    swap = [0] + [i + (1 if i % 2 else -1) for i in range(1, n_directions)]  # +x and -x of each lean trade places
+    swap = mirrored_directions(n_directions)
     parts, part_labels = [], []
     for j in range(-shifts, shifts + 1):  # the object moved j steps: it reads at place p what it read at p - j
         y = poses[:, 1] + j * metres

@@ -402,19 +402,22 @@ class HapticGlance(pl.LightningModule):
         return reflect(action, 1, where=mirrored)
 
     def policy_extra(self, actions: Tensor | None, points: Tensor, last_only: bool = False,
-                     pooled: Tensor | None = None) -> tuple[Tensor | None, Tensor | None]:
+                     pooled: Tensor | None = None, readings: tuple[Tensor, Tensor] | None = None
+                     ) -> tuple[Tensor | None, Tensor | None]:
         """Beyond the paper, what the policy reads beside PCRN's state: row j, after probes 1..j + 1 of the
         actions and points (B, K, 4) -> features (B, K, E) (the touch set's pooled ones, detached, and / or a
         choice's readings by candidate) or None, and the candidates probed (B, K, C) the choice excludes, or None.
-        last_only: row K - 1 only (K = 1 in the outputs), what a probe loop reads. pooled: the touch set's
-        features of every row, if computed already."""
+        last_only: row K - 1 only (K = 1 in the outputs), what a probe loop reads. pooled, readings: the touch set's
+        features and the choice's readings (CandidateLocationNetwork.readings) of every row, if computed already."""
         h, features, exclude = self.hparams, [], None
         if h.policy_reads_touch_set:
             if pooled is None:
                 pooled = self.touch_set.pooled(points.to(self.device), last_only=last_only)
             features.append(pooled.detach())
         if h.choice_reads_probes:
-            readings, exclude = self.location.readings(actions.to(self.device), points.to(self.device), h.n_probes)
+            if readings is None:
+                readings = self.location.readings(actions.to(self.device), points.to(self.device), h.n_probes)
+            readings, exclude = readings
             features.append(readings[:, -1:] if last_only else readings)
             exclude = exclude[:, -1:] if last_only else exclude
         return (torch.cat(features, -1) if features else None), exclude
@@ -663,14 +666,15 @@ class HapticGlance(pl.LightningModule):
         if self.final_touch_set is not None:  # replaces the prediction after the last probe
             final = self.final_touch_set.read(self.final_touch_set.pooled(rollout.points, last_only=True))
             logits = torch.cat([logits[:, :-1], final], 1)
-        if self.along_line_classifier is not None:
-            readings, _ = self.location.readings(rollout.actions, rollout.points, self.hparams.n_probes)
-            logits = logits + self.along_line_classifier(readings)
+        readings = None
+        if self.along_line_classifier is not None:  # (the choice reads the same readings, below)
+            readings = self.location.readings(rollout.actions, rollout.points, self.hparams.n_probes)
+            logits = logits + self.along_line_classifier(readings[0])
         log_pi = baseline = None
         if self.hparams.policy == "learned" and learn_policy:
             # s_k from which request k was drawn; beyond the paper, the policy may read it without training the encoder
             # and the touch set's pooled features, which learn from the cross-entropy only
-            extra, exclude = self.policy_extra(rollout.actions, rollout.points, pooled=pooled)
+            extra, exclude = self.policy_extra(rollout.actions, rollout.points, pooled=pooled, readings=readings)
             mirrored = self.mirrored_states(rollout.points)  # the policy drew each request in its state's view
             states = self.policy_states(rep.detach() if self.hparams.policy_reads_detached else rep, mirrored, extra)
             offsets = self.prior_offsets(rollout.points)

@@ -4,6 +4,7 @@ import torch
 from torch import Tensor, nn
 
 from hg.nets.location import by_place
+from hg.nets.mirror import mirrored_directions
 from hg.nets.mlp import cumulative_mean, mlp
 
 
@@ -65,26 +66,26 @@ class AlongLineClassifier(nn.Module):
     """Beyond the paper: logits from what the probes so far read by candidate (CandidateLocationNetwork.readings:
     probed, touched, how deep), the same function of the readings around every place along the line, then the most
     of each feature over the places: an object moved along the line by whole place steps is read alike (reach: how
-    many places one reading sees). Why: on the
-    held-out position cells the greedy planner's namer, whose library holds its episodes moved along the line, named
-    our policy's probes 0.947 where our classifiers read them 0.886 (scripts/accuracy_by_cell.py --namer). With
+    many places one reading sees). Why: on the held-out position cells the greedy planner's namer, whose library
+    holds its episodes moved along the line, named our policy's probes 0.947 where our classifiers read them 0.886
+    (scripts/accuracy_by_cell.py --namer). With
     `mirror`, the mean of the logits of the readings and of their mirror image (each lean's +x and -x swapped), as
     hg4's mirror-symmetric shapes allow."""
 
     def __init__(self, n_classes: int, places: int, directions: int, hidden: int = 128, reach: int = 9,
                  mirror: bool = False) -> None:
         super().__init__()
-        if directions % 2 != 1:
-            raise ValueError(f"AlongLineClassifier: {directions} directions are not straight down and pairs of leans "
-                             "to +x and -x (candidate_requests)")
+        try:
+            swap = mirrored_directions(directions)
+        except ValueError as error:
+            raise ValueError(f"AlongLineClassifier: {error}") from None
         self.places, self.directions, self.mirror = places, directions, mirror
         # every window of `reach` places that holds a place of the line, those hanging over its ends too (read as
         # places never probed), so that a pattern moved along the line meets the same windows: exactly invariant
         self.conv = nn.Sequential(nn.Conv1d(3 * directions, hidden, reach, padding=reach - 1), nn.ELU(),
                                   nn.Conv1d(hidden, hidden, 1), nn.ELU())
         self.head = mlp([hidden, hidden, n_classes], last_act=False)
-        # +x and -x of each lean trade places (candidate_requests: straight down, then +x and -x of each lean)
-        self.register_buffer("swap", torch.tensor([0] + [i + (1 if i % 2 else -1) for i in range(1, directions)]))
+        self.register_buffer("swap", torch.tensor(swap))
 
     def forward(self, readings: Tensor) -> Tensor:
         """(B, N, 3C + ...) readings after probes 1..k + 1 (only the first 3C, per candidate, are read) -> logits
