@@ -57,8 +57,10 @@ def by_kind(correct: np.ndarray, kind: np.ndarray) -> dict:
 def planner_namer(teacher: list[str], split: str, episodes: int, mode: str):
     """The planner's namer over the teacher files' library, the table episodes' readings of every candidate (in
     `mode`), the candidates, and the episodes' classes and kinds of held-out pose."""
-    from copy_planner import BayesNamer, teacher_meta
-    from planner_ceiling import readings
+    from copy_planner import BayesNamer
+
+    from hg.lightning.data import teacher_meta
+    from hg.sim.library import readings
     for path in teacher:
         if not Path(path).is_file():
             raise SystemExit(f"--namer {path}: teacher file not found (write one with planner_ceiling.py "

@@ -38,24 +38,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "scripts"))
 
-from hg.lightning.data import EvalEpisodes, load_teacher  # noqa: E402
-from hg.sim import PoseRegions, ProbeSimulator, candidate_requests, sample_episodes  # noqa: E402
-from planner_ceiling import (CHUNK, MISS, cell_matrix, fixed_sequence,  # noqa: E402
-                             library_readings, probe_episodes, readings, summary)
-
-
-def teacher_meta(paths: list[str]) -> dict:
-    """The planner arguments the teacher files were made with; they must agree on those that shape the candidates
-    and the library, since one namer reads every sequence."""
-    metas = []
-    for path in paths:
-        with np.load(path) as f:
-            metas.append(json.loads(str(f["meta"])))
-    keys = ("places", "span", "leans", "library", "library_split", "shifts", "mirror", "sigma", "mismatch", "bin")
-    for path, meta in zip(paths[1:], metas[1:]):
-        if (differ := [k for k in keys if meta.get(k) != metas[0].get(k)]):
-            raise ValueError(f"--teacher {path}: planner arguments {differ} differ from {paths[0]}'s")
-    return metas[0]
+from hg.lightning.data import EvalEpisodes, load_teacher, teacher_meta  # noqa: E402
+from hg.sim import PoseRegions, ProbeSimulator, candidate_requests  # noqa: E402
+from hg.sim.library import MISS, readings, teacher_library  # noqa: E402
+from planner_ceiling import CHUNK, cell_matrix, fixed_sequence, probe_episodes, summary  # noqa: E402
 
 
 class BayesNamer:
@@ -65,10 +51,7 @@ class BayesNamer:
 
     def __init__(self, meta: dict, sim: ProbeSimulator, regions: PoseRegions, n_classes: int,
                  library: int | None = None) -> None:
-        labels, poses = sample_episodes(regions, meta["library_split"], library or meta["library"], n_classes,
-                                        np.random.default_rng(meta["seed"] + 1))
-        readings_, labels = library_readings(sim, labels, poses, meta["places"], meta["span"], meta["leans"],
-                                             meta["shifts"], meta["mirror"])
+        readings_, labels = teacher_library(meta, sim, regions, n_classes, library)
         self.meta, self.n_classes = meta, n_classes
         self.n_bins = int(np.ceil(sim.scene.probe_length / meta["bin"])) + 2
         bins = np.where(readings_ == MISS, 0, 1 + np.minimum(readings_ / meta["bin"], self.n_bins - 2)).astype(np.int64)

@@ -44,6 +44,8 @@ class Row:
     learned: bool = True
     encoder: str = "pcrn"
     planner: tuple[str, ...] = ()  # a row that plans instead of learning: scripts/planner_ceiling.py's library arguments
+    scores: str | None = None  # a row that trains nothing: it scores that row's best checkpoints (same seed) as its
+    # config reads them (e.g. with model.library_namer), so it runs after that row
 
 
 SIDE_SCAN = "side-picking scan (steep first pair) + PCRN-FC + wide touch set"
@@ -228,6 +230,11 @@ ROWS = {
         "PCRN's state), never one twice, copying the planner for 8000 steps, then the hybrid rule + wide touch set, "
         f"temperature falling to a tenth, 16000 steps, learning rate falling to 5%, {FINAL_TOUCH_SET}, both touch "
         "sets reading an episode and its mirror image across the line alike (beyond the paper)"),
+    "pcrn_fc_candidates_readings_only_imitate_planner_final_mirror_library_namer": Row(
+        "PCRN-FC+ choosing among the greedy planner's candidate probes from what each candidate read so far alone, as "
+        "the row above (its trained models), with the planner's namer over a library of training episodes added to "
+        "every prediction (beyond the paper)",
+        scores="pcrn_fc_candidates_readings_only_imitate_planner_final_mirror"),
     "pcrn_fc_candidates_readings_only_along_line_classifier_imitate_planner_final_mirror": Row(
         "PCRN-FC+ choosing among the greedy planner's candidate probes from what each candidate read so far alone (not "
         "PCRN's state), never one twice, copying the planner for 8000 steps, then the hybrid rule + wide touch set + "
@@ -279,8 +286,17 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out_dir: Path, steps: in
 
     code_commit = commit()  # the code this run trains with, read before it starts
     name = run_name(row, seed)
+    source = ROWS[row].scores
     if ROWS[row].planner:
         facts = plan_and_test(ROWS[row].planner, seed, test_episodes)
+    elif source:
+        source_run = out_dir / "runs" / f"{run_name(source, seed)}.json"
+        if not source_run.is_file():
+            raise FileNotFoundError(f"{source_run}: row {row} scores the checkpoints of row {source}; run its seed "
+                                    f"{seed} first")
+        checkpoint = ROOT / json.loads(source_run.read_text())["best_checkpoint"]
+        facts = fit_and_test(ROOT / config_of(row), seed, runs_dir / name, eval_seed=EVAL_SEED,
+                             test_episodes=test_episodes, checkpoint=checkpoint) | {"scores_checkpoint_of": source}
     else:
         facts = fit_and_test(ROOT / config_of(row), seed, runs_dir / name, eval_seed=EVAL_SEED,
                              test_episodes=test_episodes, steps=steps)
@@ -510,8 +526,11 @@ def main() -> None:
                   f"in {time.time() - start:.0f} s", flush=True)
             return code
 
-        with ThreadPoolExecutor(max(1, args.jobs)) as pool:
-            failed = sum(code != 0 for code in pool.map(launch, todo))
+        failed = 0
+        for scoring in (False, True):  # the rows that score other rows' checkpoints after those rows
+            with ThreadPoolExecutor(max(1, args.jobs)) as pool:
+                failed += sum(code != 0 for code in pool.map(launch, [t for t in todo
+                                                                       if bool(ROWS[t[0]].scores) == scoring]))
         if failed:
             print(f"{failed} runs failed; merging the finished ones", flush=True)
     print(json.dumps(merge(args.out)))

@@ -58,6 +58,20 @@ def load_teacher(paths: list[str], regions: PoseRegions, objects: str, n_probes:
             "requests": torch.from_numpy(requests).float()}
 
 
+def teacher_meta(paths: list[str]) -> dict:
+    """The planner arguments the teacher files were made with; they must agree on those that shape the candidates
+    and the library, since one namer reads every sequence."""
+    metas = []
+    for path in paths:
+        with np.load(path) as f:
+            metas.append(json.loads(str(f["meta"])))
+    keys = ("places", "span", "leans", "library", "library_split", "shifts", "mirror", "sigma", "mismatch", "bin")
+    for path, meta in zip(paths[1:], metas[1:]):
+        if (differ := [k for k in keys if meta.get(k) != metas[0].get(k)]):
+            raise ValueError(f"{path}: planner arguments {differ} differ from {paths[0]}'s")
+    return metas[0]
+
+
 class TrainEpisodes(IterableDataset):
     """Endless training batches; batch i of rank r is seeded by (seed, r, i), starting at `start`."""
 

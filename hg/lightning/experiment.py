@@ -12,8 +12,10 @@ from hg.provenance import repo_path
 
 
 def fit_and_test(config: Path, seed: int, folder: Path, *, eval_seed: int, test_episodes: int,
-                 steps: int | None = None, extra_args: Sequence[str] = ()) -> dict:
-    """Train `config` with `seed` (checkpoints and the wandb run in `folder`), then test the checkpoint best on val.
+                 steps: int | None = None, extra_args: Sequence[str] = (), checkpoint: Path | None = None) -> dict:
+    """Train `config` with `seed` (checkpoints and the wandb run in `folder`), then test the checkpoint best on val;
+    or, given `checkpoint` (another run's best), train nothing: score that checkpoint on val and test as `config`
+    reads it (a config that adds to what the model names, e.g. model.library_namer).
 
     `extra_args` are CLI overrides applied after the config (e.g. the sensor noise); `steps` overrides max_steps
     (smoke tests). Returns the accuracy after each probe (stochastic and, for a learned policy, mean action), the
@@ -31,14 +33,22 @@ def fit_and_test(config: Path, seed: int, folder: Path, *, eval_seed: int, test_
     if steps is not None:
         args += ["--trainer.max_steps", str(steps), "--trainer.val_check_interval", str(max(1, min(500, steps // 4)))]
     run = cli(args, run=False)
-    last = checkpoints / "last.ckpt"
-    resumed_from = checkpoint_step(last) if last.is_file() else 0
+    if checkpoint is not None:
+        if not checkpoint.is_file():
+            raise FileNotFoundError(f"{checkpoint}: the checkpoint to score is missing")
+        resumed_from = 0
+        val = run.trainer.validate(run.model, datamodule=run.datamodule, ckpt_path=str(checkpoint))[0]["val/acc"]
+        train_s, best_path, best_score = 0.0, str(checkpoint), val
+    else:
+        last = checkpoints / "last.ckpt"
+        resumed_from = checkpoint_step(last) if last.is_file() else 0
+        start = time.time()
+        run.trainer.fit(run.model, datamodule=run.datamodule, ckpt_path=str(last) if last.is_file() else None)
+        train_s = time.time() - start
+        best = next(c for c in run.trainer.checkpoint_callbacks if getattr(c, "monitor", None) == "val/acc")
+        best_path, best_score = best.best_model_path, best.best_model_score
     start = time.time()
-    run.trainer.fit(run.model, datamodule=run.datamodule, ckpt_path=str(last) if last.is_file() else None)
-    train_s = time.time() - start
-    best = next(c for c in run.trainer.checkpoint_callbacks if getattr(c, "monitor", None) == "val/acc")
-    start = time.time()
-    run.trainer.test(run.model, datamodule=run.datamodule, ckpt_path=best.best_model_path)
+    run.trainer.test(run.model, datamodule=run.datamodule, ckpt_path=best_path)
     test_s = time.time() - start
     columns = per_probe_table(run.trainer.callback_metrics, "test", run.model.hparams.n_probes)
     wandb.finish()  # close the run here: a caller that goes on (another run, a merge) must not print into its logs
@@ -46,8 +56,8 @@ def fit_and_test(config: Path, seed: int, folder: Path, *, eval_seed: int, test_
         "max_steps": run.trainer.max_steps, "resumed_from_step": resumed_from,
         "accuracy": [round(v, 4) for v in columns["stochastic"]],
         "accuracy_mean_action": [round(v, 4) for v in columns["mean_action"]] if "mean_action" in columns else None,
-        "best_val_acc": round(float(best.best_model_score), 4) if best.best_model_score is not None else None,
-        "best_checkpoint": repo_path(best.best_model_path),
+        "best_val_acc": round(float(best_score), 4) if best_score is not None else None,
+        "best_checkpoint": repo_path(best_path),
         "train_wall_s": round(train_s, 1), "test_wall_s": round(test_s, 1),
         "test_episodes": test_episodes, "test_fingerprint": test_fingerprint(run.datamodule),
         "torch_threads": __import__("torch").get_num_threads(),

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal, get_args
 
 import pytorch_lightning as pl
@@ -10,10 +11,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from hg.lightning.data import load_teacher
-from hg.nets import (PCRN, AlongLineClassifier, Baseline, CandidateLocationNetwork, FCClassifier, LinearClassifier,
-                     LocationNetwork, LSTMEncoder, NClassClassifier, TouchSetClassifier, left_of_line, reflect)
+from hg.lightning.data import load_teacher, teacher_meta
+from hg.nets import (PCRN, AlongLineClassifier, Baseline, CandidateLocationNetwork, FCClassifier, LibraryNamer,
+                     LinearClassifier, LocationNetwork, LSTMEncoder, NClassClassifier, TouchSetClassifier, left_of_line,
+                     reflect)
 from hg.sim import ProbeSimulator, candidate_requests
+from hg.sim.library import MISS, teacher_library
 from hg.sim.robot import achieved
 
 COMPONENTS = ("py", "ux", "uy", "uz")
@@ -140,7 +143,7 @@ class HapticGlance(pl.LightningModule):
                  candidate_span: float = 0.5, candidate_leans: tuple[float, ...] = (0.6, 1.0, 2.0),
                  choice_reads_probes: bool = False, choice_along_line: bool = False,
                  choice_reads_state: bool = True, random_probe_share: float = 0.0,
-                 along_line_classifier: bool = False) -> None:
+                 along_line_classifier: bool = False, library_namer: str | None = None) -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -254,6 +257,12 @@ class HapticGlance(pl.LightningModule):
         self.along_line_classifier = AlongLineClassifier(
             n_classes, candidate_places, len(candidates) // candidate_places,
             mirror=touch_set_mirror) if along_line_classifier else None
+        if library_namer is not None and location != "candidates":
+            raise ValueError(f"model.library_namer={library_namer!r} names the readings of the planner's candidates, so "
+                             f"it needs model.location: candidates, got {location!r}")
+        # beyond the paper: at validation and test, the planner's namer's log posterior over the class (a library of
+        # training episodes read by nearest match) is added to every prediction; built in setup()
+        self.library_namer: LibraryNamer | None = None
         self.baseline = Baseline(policy_dim)  # b_k reads the state s_k the policy reads
         self.line_x = 0.0  # where the probe line is (set with the sim)
         self.sim: ProbeSimulator | None = None
@@ -369,6 +378,39 @@ class HapticGlance(pl.LightningModule):
                 except ValueError as error:
                     raise ValueError(f"model.imitate={list(self.hparams.imitate)}: {error} (model.candidate_places, "
                                      "candidate_span, candidate_leans must be the teacher's)") from None
+        if self.hparams.library_namer and self.library_namer is None:
+            self.library_namer = self.build_library_namer(self.hparams.library_namer, data)
+
+    def build_library_namer(self, path: str, data) -> LibraryNamer:
+        """The namer of the teacher file `path`'s planner over its library, read here in ideal mode as the planner
+        read it. Refuses a library of held-out poses, other objects or pose regions, or other candidates."""
+        if not Path(path).is_file():
+            raise FileNotFoundError(f"model.library_namer: {path}: teacher file not found (write one with "
+                                    "scripts/planner_ceiling.py --save-rollouts)")
+        meta = teacher_meta([path])
+        h = self.hparams
+        for field, have, want in (("library_split", meta.get("library_split"), "train"),
+                                  ("objects", meta.get("objects"), data.object_set.name),
+                                  ("eval_seed", meta.get("eval_seed"), data.regions.seed),
+                                  ("places", meta.get("places"), h.candidate_places),
+                                  ("span", meta.get("span"), h.candidate_span),
+                                  ("leans", meta.get("leans"), list(h.candidate_leans))):
+            if have != want:
+                raise ValueError(f"model.library_namer: {path}: meta {field}={have!r}, this model needs {want!r} "
+                                 "(held-out poses must not enter the library; its candidates must be the model's)")
+        with ProbeSimulator(data.object_set, 1024, data.scene, "ideal", seed=0) as sim:
+            library, labels = teacher_library(meta, sim, data.regions, data.n_classes)
+            self.candidate_entries = torch.from_numpy(sim.scene.request_to_probe(self.location.candidates.numpy())[0])
+        return LibraryNamer(torch.from_numpy(library), torch.from_numpy(labels).long(), data.n_classes,
+                            meta["sigma"], meta["mismatch"]).to(self.device)
+
+    def library_log_posterior(self, rollout: Rollout) -> Tensor:
+        """(B, N, classes) the library namer's log posterior after each probe: each probe's reading is how far from
+        its requested entry point it touched (metres), as the planner read its candidates."""
+        chosen = self.location.index_of(rollout.actions)
+        entries = self.candidate_entries.to(rollout.points)[chosen]
+        distance = (rollout.points[..., :3] / self.hparams.point_scale - entries).norm(dim=-1)
+        return self.library_namer(chosen, torch.where(rollout.points[..., 3] > 0.5, distance, MISS))
 
     def teardown(self, stage: str) -> None:
         if self.sim is not None:
@@ -787,6 +829,8 @@ class HapticGlance(pl.LightningModule):
         for suffix, deterministic in variants:
             rollout = self.rollout(labels, batch["poses"], seed, deterministic=deterministic)
             _, logits = self.evaluate(rollout, labels)
+            if self.library_namer is not None:
+                logits = logits + self.library_log_posterior(rollout)
             scored[deterministic] = (rollout, logits.detach())
             correct = (logits.argmax(-1) == labels[:, None]).float().mean(0)
             metrics = {f"{stage}/acc{suffix}@{k + 1}": correct[k] for k in range(len(correct))}

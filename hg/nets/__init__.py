@@ -2,6 +2,7 @@
 
 from hg.nets.heads import AlongLineClassifier, Baseline, FCClassifier, LinearClassifier, NClassClassifier
 from hg.nets.location import CandidateLocationNetwork, LocationNetwork
+from hg.nets.library import LibraryNamer
 from hg.nets.lstm import LSTMEncoder
 from hg.nets.mirror import left_of_line, reflect
 from hg.nets.mlp import cumulative_mean, mlp
@@ -18,6 +19,7 @@ __all__ = [
     "CandidateLocationNetwork",
     "FCClassifier",
     "LSTMEncoder",
+    "LibraryNamer",
     "LinearClassifier",
     "LocationNetwork",
     "NClassClassifier",

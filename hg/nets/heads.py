@@ -4,7 +4,7 @@ import torch
 from torch import Tensor, nn
 
 from hg.nets.location import by_place
-from hg.nets.mirror import mirrored_directions
+from hg.sim.scene import mirrored_directions
 from hg.nets.mlp import cumulative_mean, mlp
 
 

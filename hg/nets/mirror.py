@@ -25,12 +25,3 @@ def reflect(values: Tensor, component: int, about: float = 0.0, where: Tensor | 
     out = values.clone()
     out[..., component] = mirrored if where is None else torch.where(where, mirrored, v)
     return out
-
-
-def mirrored_directions(directions: int) -> list[int]:
-    """hg.sim.candidate_requests' directions at one place, mirrored across the line: direction j of the mirror image
-    is direction [j] of the original (straight down stays; +x and -x of each lean trade places)."""
-    if directions % 2 != 1:
-        raise ValueError(f"{directions} directions are not straight down and pairs of leans to +x and -x "
-                         "(candidate_requests)")
-    return [0] + [i + (1 if i % 2 else -1) for i in range(1, directions)]

@@ -95,3 +95,12 @@ def candidate_requests(places: int, span: float, leans: list[float] | tuple[floa
                          "each in (0, 2] (uz = 1 - lean stays in [-1, 1])")
     directions = [(0.0, 0.0, 1.0)] + [(side, 0.0, 1.0 - lean) for lean in leans for side in (1.0, -1.0)]
     return np.array([(py, *d) for py in np.linspace(-span, span, places) for d in directions])
+
+
+def mirrored_directions(directions: int) -> list[int]:
+    """candidate_requests' directions at one place, mirrored across the line: direction j of the mirror image
+    is direction [j] of the original (straight down stays; +x and -x of each lean trade places)."""
+    if directions % 2 != 1:
+        raise ValueError(f"{directions} directions are not straight down and pairs of leans to +x and -x "
+                         "(candidate_requests)")
+    return [0] + [i + (1 if i % 2 else -1) for i in range(1, directions)]
