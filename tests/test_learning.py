@@ -1,6 +1,7 @@
 """The hybrid update rule and the Lightning module on real rollouts in the simulator (ideal mode, tiny nets)."""
 import copy
 import csv
+import json
 import os
 import subprocess
 import sys
@@ -17,6 +18,7 @@ from hg.lightning import HapticGlance, ProbeDataModule, discounted_returns, hybr
 from hg.lightning.callbacks import WeightEMA
 from hg.lightning.module import Rollout, relative_to_first_touch
 from hg.nets import reflect
+from hg.sim.library import MISS, readings
 from hg.sim.scene import Scene
 from hg.sim.simulator import ProbeSimulator
 
@@ -251,6 +253,40 @@ def test_a_teacher_with_held_out_poses_or_no_warmup_is_refused(data, teacher, tm
         trainer.fit(other, datamodule=data)
     with pytest.raises(ValueError, match="model.imitate=.*needs model.policy: learned, model.policy_warmup_steps > 0"):
         HapticGlance(imitate=(str(teacher),))
+
+
+def test_library_namer_reads_the_probes_as_the_planner_read_its_library_and_refuses_held_out_poses(data, teacher,
+                                                                                                   tmp_path):
+    """model.library_namer: the teacher file's library rebuilt in setup, each probe read as how far from its entry
+    point it touched (what hg.sim.library.readings gives the same episode), its log posterior added to what
+    validation and test score; a library of held-out poses is refused."""
+    model = make_model(data, location="candidates", library_namer=str(teacher))
+    trainer = pl.Trainer(logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                         enable_model_summary=False, accelerator="cpu")
+    scored = trainer.validate(model, datamodule=data)[0]
+    assert model.library_namer.library.shape == (77, 256) and 0 <= scored["val/acc"] <= 1
+    assert "library_namer.library" not in model.state_dict()  # rebuilt from its recipe, not checkpointed
+    batch = first_batch(data)
+    model.sim = data.make_simulator()
+    rollout = model.rollout(batch["labels"], batch["poses"], 1)
+    chosen = model.location.index_of(rollout.actions)
+    every = torch.from_numpy(readings(model.sim, batch["labels"].numpy(), batch["poses"].numpy(),
+                                      model.location.candidates.numpy()))
+    read = every.gather(1, chosen)
+    assert (read != MISS).any()
+    torch.testing.assert_close(model.library_log_posterior(rollout), model.library_namer(chosen, read), atol=1e-3,
+                               rtol=0)
+    model.sim.close()
+    with np.load(teacher) as f:
+        episodes = dict(f)
+    episodes["meta"] = np.array(json.dumps({**json.loads(str(episodes["meta"])), "library_split": "val"}))
+    leaking = tmp_path / "leaking.npz"
+    np.savez(leaking, **episodes)
+    with pytest.raises(ValueError, match=f"model.library_namer: {leaking}: meta library_split='val', this model needs "
+                                         "'train'"):
+        trainer.validate(make_model(data, location="candidates", library_namer=str(leaking)), datamodule=data)
+    with pytest.raises(ValueError, match="model.library_namer=.* needs model.location: candidates"):
+        HapticGlance(library_namer=str(teacher))
 
 
 def test_std_schedule_shrinks_the_policy_std_and_travels_with_the_checkpoint(data, tmp_path):
@@ -821,6 +857,24 @@ def test_fit_then_test_from_checkpoint(tmp_path):
     hg("test", "--config", TINY, "--ckpt_path", str(checkpoints[0]), cwd=tmp_path)
     assert latest_csv(tmp_path) == first
     assert first[0] == ["probes", "stochastic", "mean_action"] and len(first) == 1 + 4
+
+
+def test_scoring_a_checkpoint_trains_nothing_and_gives_what_its_run_gave(tmp_path, monkeypatch):
+    """fit_and_test with a checkpoint (reproduce_table1's rows that score another row's runs): no training; the
+    checkpoint's validation and test accuracy, as the run that trained it measured them."""
+    from hg.lightning.experiment import fit_and_test
+
+    monkeypatch.setenv("WANDB_MODE", "disabled")
+    kwargs = {"eval_seed": 0, "test_episodes": 32}
+    trained = fit_and_test(Path(TINY), 0, tmp_path / "trained", **kwargs)
+    best = ROOT / trained["best_checkpoint"]  # (relative to the repository when inside it)
+    scored = fit_and_test(Path(TINY), 0, tmp_path / "scored", checkpoint=best, **kwargs)
+    assert trained["train_wall_s"] > 0 and scored["train_wall_s"] == 0.0
+    assert not (tmp_path / "scored" / "checkpoints").exists()
+    assert scored["accuracy"] == trained["accuracy"] and scored["best_val_acc"] == trained["best_val_acc"]
+    assert scored["best_checkpoint"] == trained["best_checkpoint"]
+    with pytest.raises(FileNotFoundError, match="nope.ckpt: the checkpoint to score is missing"):
+        fit_and_test(Path(TINY), 0, tmp_path / "none", checkpoint=tmp_path / "nope.ckpt", **kwargs)
 
 
 def test_same_seed_same_training(tmp_path):

@@ -12,11 +12,13 @@ from hg.nets import (
     FCClassifier,
     CandidateLocationNetwork,
     LocationNetwork,
+    LibraryNamer,
     LSTMEncoder,
     NClassClassifier,
     PointNet,
     TouchSetClassifier,
 )
+from hg.sim.library import MISS
 
 B, N, K = 3, 6, 2  # batch, probes, the probe after which we perturb
 
@@ -391,3 +393,25 @@ def test_encoders_step_by_step_equal_forward(make) -> None:
     for k in range(N):
         out, memory = encoder.step(requests[:, k], points[:, k], memory)
         assert torch.allclose(out, full[:, k], atol=1e-5), k
+
+
+def test_library_namer_weighs_the_library_by_how_well_its_readings_match() -> None:
+    """Class 0's episodes touch candidate 0 10 cm along the ray, class 1's miss it; both touch candidate 1, at 20 cm
+    and 30 cm, and class 2's touch only candidate 2."""
+    library = torch.tensor([[0.10, 0.20, MISS], [0.11, 0.20, MISS], [MISS, 0.30, MISS], [MISS, 0.31, MISS],
+                            [MISS, MISS, 0.15]])
+    labels = torch.tensor([0, 0, 1, 1, 2])
+    namer = LibraryNamer(library, labels, 3, sigma=0.005, mismatch=1e-3, chunk=1)
+    chosen = torch.tensor([[0, 1], [1, 0], [2, 0]])
+    readings = torch.tensor([[0.102, 0.20], [0.30, MISS], [MISS, MISS]])
+    log_p = namer(chosen, readings)
+    assert log_p.shape == (3, 2, 3)
+    torch.testing.assert_close(log_p.logsumexp(-1), torch.zeros(3, 2))
+    assert log_p[0, 0].argmax() == 0 and log_p[0, 0, 0].exp() > 0.99  # a touch where only class 0 touches
+    assert log_p[1, 0].argmax() == 1 and log_p[1, 1, 1].exp() > 0.99  # 30 cm on candidate 1, then a miss on 0
+    # a miss on candidate 2 leaves classes 0 and 1 alike (each 2 library episodes), class 2 a mismatch away
+    torch.testing.assert_close(log_p[2, 0, 0], log_p[2, 0, 1])
+    assert log_p[2, 0, 2] < log_p[2, 0, 0] - 5
+    torch.testing.assert_close(LibraryNamer(library, labels, 3, 0.005, 1e-3, chunk=64)(chosen, readings), log_p)
+    with pytest.raises(ValueError, match=r"LibraryNamer: the library holds no episode of class \[3\]"):
+        LibraryNamer(library, labels, 4, 0.005, 1e-3)

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from hg.sim import ProbeSimulator
+from hg.sim import ProbeSimulator, candidate_requests
+from hg.sim.library import MISS, library_readings, readings
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "WANDB_MODE": "disabled", "OMP_NUM_THREADS": "1"}
@@ -68,6 +69,15 @@ def test_every_row_is_trained_by_its_shipped_config():
     table1 = script("reproduce_table1")
     missing = [row for row in table1.ROWS if not (table1.ROOT / table1.config_of(row)).is_file()]
     assert not missing and len(table1.ROWS) >= 5
+
+
+def test_a_row_scoring_another_row_s_checkpoints_needs_that_row_s_run_first(tmp_path):
+    table1 = script("reproduce_table1")
+    scoring = [row for row, spec in table1.ROWS.items() if spec.scores]
+    assert scoring and all(table1.ROWS[row].scores in table1.ROWS for row in scoring)
+    with pytest.raises(FileNotFoundError, match=f"row {scoring[0]} scores the checkpoints of row .*; run its seed 0 "
+                                                "first"):
+        table1.train_and_test(scoring[0], 0, tmp_path / "ckpt", tmp_path, None, 1)
 
 
 def test_planner_row_plans_on_the_table_s_test_episodes_and_merges_beside_the_learned_rows(tmp_path):
@@ -352,21 +362,20 @@ def test_planner_probes_where_the_reading_tells_the_class_and_runs_on_real_probe
 
 
 def test_planner_library_shifts_and_mirror_images_read_as_moved_and_mirrored_objects_do():
-    planner = script("planner_ceiling")
     labels = np.arange(4)  # every hg4 object
     poses = np.array([[0.05, 0.0, -0.25, 5.0, -4.0, 30.0], [-0.08, 0.02, -0.3, -6.0, 8.0, 100.0],
                       [0.1, -0.03, -0.22, 2.0, 3.0, 200.0], [-0.02, 0.04, -0.28, -3.0, -7.0, 300.0]])
     with ProbeSimulator("hg4", batch_size=8, mode="ideal") as sim:
-        library, library_labels = planner.library_readings(sim, labels, poses, 5, 0.4, [1.0], 1, True)
+        library, library_labels = library_readings(sim, labels, poses, 5, 0.4, [1.0], 1, True)
         step = 0.2 * 0.5 * (sim.scene.probe_y[1] - sim.scene.probe_y[0])  # 0.2 request units apart, in metres
-        candidates = planner.candidate_requests(5, 0.4, [1.0])
+        candidates = candidate_requests(5, 0.4, [1.0])
         moved, mirrored = poses.copy(), poses * [-1, 1, 1, 1, -1, -1]  # x -> -x: Ry and Rz change sign
         moved[:, 1] += step
-        as_moved = planner.readings(sim, labels, moved, candidates)
-        as_mirrored = planner.readings(sim, labels, mirrored, candidates)
+        as_moved = readings(sim, labels, moved, candidates)
+        as_mirrored = readings(sim, labels, mirrored, candidates)
     # blocks of 4: shift -1, its mirror, shift 0, its mirror, shift +1, its mirror (all objects stay in range)
     assert library.shape == (24, 15) and library_labels.tolist() == labels.tolist() * 6
-    assert (as_moved != planner.MISS).any() and (as_mirrored != planner.MISS).any()
+    assert (as_moved != MISS).any() and (as_mirrored != MISS).any()
     np.testing.assert_allclose(library[16:20], as_moved, atol=1e-4)
     np.testing.assert_allclose(library[12:16], as_mirrored, atol=1e-4)
 
