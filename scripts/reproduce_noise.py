@@ -134,9 +134,13 @@ def noise_args(rate: float) -> list[str]:
     return ["--data.noise.miss_prob", str(rate), "--data.noise.false_contact_prob", str(rate)]
 
 
-def test_under_noise(checkpoint: Path, rate: float, test_episodes: int = TEST_EPISODES) -> dict:
-    """Accuracy after each probe on the table's test episodes with each reading corrupted with probability rate."""
+def test_under_noise(checkpoint: Path, rate: float, test_episodes: int = TEST_EPISODES, config: str | None = None
+                     ) -> dict:
+    """Accuracy after each probe on the table's test episodes with each reading corrupted with probability rate;
+    the model as the row's `config` reads it (its model section over the checkpoint's: a row scoring another row's
+    checkpoints adds to what they name, e.g. model.library_namer)."""
     import pytorch_lightning as pl
+    import yaml
 
     from hg.lightning.callbacks import per_probe_table
     from hg.lightning.cli import datamodule_from_checkpoint
@@ -147,7 +151,8 @@ def test_under_noise(checkpoint: Path, rate: float, test_episodes: int = TEST_EP
                                 "rerun that row with scripts/reproduce_table1.py)")
     data = datamodule_from_checkpoint(checkpoint, args=[
         *noise_args(rate), "--data.eval_seed", str(EVAL_SEED), "--data.test_episodes", str(test_episodes)])
-    model = HapticGlance.load_from_checkpoint(checkpoint, map_location="cpu")
+    model_args = (yaml.safe_load((ROOT / config).read_text()).get("model") or {}) if config else {}
+    model = HapticGlance.load_from_checkpoint(checkpoint, map_location="cpu", **model_args)
     trainer = pl.Trainer(accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
                          enable_model_summary=False, deterministic=True)
     start = time.time()
@@ -279,7 +284,7 @@ def main() -> None:
     if not args.merge_only:
         jobs = [(m, r, s) for s in args.seeds for m in args.models if m in NETS for r in args.rates]  # seed-major
         if "ours" in args.models:
-            row, _, table_runs, test_episodes = table_row(args.out)
+            row, config, table_runs, test_episodes = table_row(args.out)
             checkpoints = {seed: ROOT / run["best_checkpoint"] for seed, run in table_runs.items()}
             jobs += [("ours", r, seed) for r in args.rates for seed in sorted(checkpoints)]
         if "ours_trained" in args.models:
@@ -297,7 +302,7 @@ def main() -> None:
                 continue
             code_commit = commit()
             if model == "ours":
-                result = test_under_noise(checkpoints[seed], rate, test_episodes)
+                result = test_under_noise(checkpoints[seed], rate, test_episodes, config)
                 result["label"], result["row"] = f"ours: {row} after 10 probes", row
             elif model == "ours_trained":
                 result = train_under_noise(trained_row, trained_config, seed, rate, trained_runs, args.runs_dir,
