@@ -231,9 +231,9 @@ ROWS = {
         f"temperature falling to a tenth, 16000 steps, learning rate falling to 5%, {FINAL_TOUCH_SET}, both touch "
         "sets reading an episode and its mirror image across the line alike (beyond the paper)"),
     "pcrn_fc_candidates_readings_only_imitate_planner_final_mirror_library_namer": Row(
-        "PCRN-FC+ choosing among the greedy planner's candidate probes from what each candidate read so far alone, as "
-        "the row above (its trained models), with the planner's namer over a library of training episodes added to "
-        "every prediction (beyond the paper)",
+        "PCRN-FC+ choosing among the greedy planner's candidate probes from what each candidate read so far alone "
+        "(the trained models of the row without the namer), with the greedy planner's namer over a library of training "
+        "episodes added to every prediction (beyond the paper)",
         scores="pcrn_fc_candidates_readings_only_imitate_planner_final_mirror"),
     "pcrn_fc_candidates_readings_only_along_line_classifier_imitate_planner_final_mirror": Row(
         "PCRN-FC+ choosing among the greedy planner's candidate probes from what each candidate read so far alone (not "
