@@ -400,7 +400,7 @@ class HapticGlance(pl.LightningModule):
                                  "(held-out poses must not enter the library; its candidates must be the model's)")
         with ProbeSimulator(data.object_set, 1024, data.scene, "ideal", seed=0) as sim:
             library, labels = teacher_library(meta, sim, data.regions, data.n_classes)
-            self.candidate_entries = torch.from_numpy(sim.scene.request_to_probe(self.location.candidates.numpy())[0])
+            self.candidate_entries = torch.from_numpy(sim.scene.request_to_probe(self.location.candidates.cpu().numpy())[0])
         return LibraryNamer(torch.from_numpy(library), torch.from_numpy(labels).long(), data.n_classes,
                             meta["sigma"], meta["mismatch"]).to(self.device)
 

@@ -46,14 +46,13 @@ class LibraryNamer(nn.Module):
     def forward(self, chosen: Tensor, readings: Tensor) -> Tensor:
         """chosen (B, N) candidate indices, readings (B, N) what each read (MISS: nothing) -> (B, N, classes) log
         posteriors after probes 1..k+1 (a uniform prior over the library's episodes)."""
-        out = []
+        out, starts = [], [0] + self.ends[:-1]
         for rows in torch.split(torch.arange(len(chosen)), self.chunk):  # (chunk, L) weights at a time
             log_w = torch.zeros(len(rows), self.library.shape[1], device=self.library.device)
             after = []
             for k in range(chosen.shape[1]):
                 log_w += log_likelihood(readings[rows, k, None], self.library[chosen[rows, k]], self.sigma,
                                         self.mismatch)
-                starts = [0] + self.ends[:-1]
                 by_class = torch.stack([torch.logsumexp(log_w[:, a:b], 1) for a, b in zip(starts, self.ends)], 1)
                 after.append(torch.log_softmax(by_class, 1))
             out.append(torch.stack(after, 1))
