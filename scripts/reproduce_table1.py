@@ -286,20 +286,20 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out_dir: Path, steps: in
 
     code_commit = commit()  # the code this run trains with, read before it starts
     name = run_name(row, seed)
-    source = ROWS[row].scores
-    if ROWS[row].planner:
-        facts = plan_and_test(ROWS[row].planner, seed, test_episodes)
-    elif source:
+    source, checkpoint = ROWS[row].scores, None
+    if source:
         source_run = out_dir / "runs" / f"{run_name(source, seed)}.json"
         if not source_run.is_file():
             raise FileNotFoundError(f"{source_run}: row {row} scores the checkpoints of row {source}; run its seed "
                                     f"{seed} first")
         checkpoint = ROOT / json.loads(source_run.read_text())["best_checkpoint"]
-        facts = fit_and_test(ROOT / config_of(row), seed, runs_dir / name, eval_seed=EVAL_SEED,
-                             test_episodes=test_episodes, checkpoint=checkpoint) | {"scores_checkpoint_of": source}
+    if ROWS[row].planner:
+        facts = plan_and_test(ROWS[row].planner, seed, test_episodes)
     else:
         facts = fit_and_test(ROOT / config_of(row), seed, runs_dir / name, eval_seed=EVAL_SEED,
-                             test_episodes=test_episodes, steps=steps)
+                             test_episodes=test_episodes, steps=steps, checkpoint=checkpoint)
+    if source:
+        facts["scores_checkpoint_of"] = source
     result = {"row": row, "label": ROWS[row].label, "config": config_of(row), "seed": seed, **facts,
               "parallel_jobs": jobs, "commit": code_commit, "hardware": hardware()}
     write_atomic(out_dir / "runs" / f"{name}.json", json.dumps(result, indent=1) + "\n")

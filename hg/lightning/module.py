@@ -400,7 +400,6 @@ class HapticGlance(pl.LightningModule):
                                  "(held-out poses must not enter the library; its candidates must be the model's)")
         with ProbeSimulator(data.object_set, 1024, data.scene, "ideal", seed=0) as sim:
             library, labels = teacher_library(meta, sim, data.regions, data.n_classes)
-            self.candidate_entries = torch.from_numpy(sim.scene.request_to_probe(self.location.candidates.cpu().numpy())[0])
         return LibraryNamer(torch.from_numpy(library), torch.from_numpy(labels).long(), data.n_classes,
                             meta["sigma"], meta["mismatch"]).to(self.device)
 
@@ -408,7 +407,8 @@ class HapticGlance(pl.LightningModule):
         """(B, N, classes) the library namer's log posterior after each probe: each probe's reading is how far from
         its requested entry point it touched (metres), as the planner read its candidates."""
         chosen = self.location.index_of(rollout.actions)
-        entries = self.candidate_entries.to(rollout.points)[chosen]
+        entries = torch.from_numpy(self.sim.scene.request_to_probe(self.location.candidates.cpu().numpy())[0])
+        entries = entries.to(rollout.points)[chosen]
         distance = (rollout.points[..., :3] / self.hparams.point_scale - entries).norm(dim=-1)
         return self.library_namer(chosen, torch.where(rollout.points[..., 3] > 0.5, distance, MISS))
 

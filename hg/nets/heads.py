@@ -4,8 +4,8 @@ import torch
 from torch import Tensor, nn
 
 from hg.nets.location import by_place
-from hg.sim.scene import mirrored_directions
 from hg.nets.mlp import cumulative_mean, mlp
+from hg.sim.scene import mirrored_directions
 
 
 class Baseline(nn.Module):
