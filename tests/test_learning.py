@@ -266,6 +266,7 @@ def test_library_namer_reads_the_probes_as_the_planner_read_its_library_and_refu
     scored = trainer.validate(model, datamodule=data)[0]
     assert model.library_namer.library.shape == (77, 256) and 0 <= scored["val/acc"] <= 1
     assert "library_namer.library" not in model.state_dict()  # rebuilt from its recipe, not checkpointed
+    assert (model.library_namer.noise, model.library_namer.probe_length) == (data.noise, data.scene.probe_length)
     batch = first_batch(data)
     model.sim = data.make_simulator()
     rollout = model.rollout(batch["labels"], batch["poses"], 1)

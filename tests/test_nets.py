@@ -1,6 +1,8 @@
 """Properties the training loop relies on: causality over probes, the eq. (1) masking, the policy's
 log-probability and sampling, and the point cloud baselines' shapes."""
 
+import math
+
 import pytest
 import torch
 
@@ -18,6 +20,8 @@ from hg.nets import (
     PointNet,
     TouchSetClassifier,
 )
+from hg.nets.library import log_likelihood
+from hg.sim import SensorNoise
 from hg.sim.library import MISS
 
 B, N, K = 3, 6, 2  # batch, probes, the probe after which we perturb
@@ -415,3 +419,27 @@ def test_library_namer_weighs_the_library_by_how_well_its_readings_match() -> No
     torch.testing.assert_close(LibraryNamer(library, labels, 3, 0.005, 1e-3, chunk=64)(chosen, readings), log_p)
     with pytest.raises(ValueError, match=r"LibraryNamer: the library holds no episode of class \[3\]"):
         LibraryNamer(library, labels, 4, 0.005, 1e-3)
+
+
+def test_library_namer_models_the_sensor_faults_it_reads() -> None:
+    """With missed and false contacts the likelihood is the sensor's own: a library touch read as a miss keeps
+    miss_prob, a library miss read as a touch false_contact_prob spread along the ray, so a faulty reading leaves
+    the posterior what Bayes says instead of all but ruling the true class out."""
+    noise = SensorNoise(miss_prob=0.2, false_contact_prob=0.1)
+    library = torch.tensor([[0.20, 0.20, MISS, MISS]])
+    ll = log_likelihood(torch.tensor([[0.20], [MISS]]), library.expand(2, 4) + torch.tensor([0, 0.01, 0, 0]), 0.005,
+                        1e-3, noise, probe_length=0.6)
+    sigma_scale = 0.005 * math.sqrt(2 * math.pi) / 0.6
+    expected = torch.tensor([[math.log(0.8), math.log(0.8) - 2.0, math.log(0.1 * sigma_scale), math.log(0.1 * sigma_scale)],
+                             [math.log(0.2), math.log(0.2), math.log(0.9), math.log(0.9)]])
+    torch.testing.assert_close(ll, expected)
+    plain = log_likelihood(torch.tensor([[0.20], [MISS]]), library.expand(2, 4), 0.005, 1e-3)
+    torch.testing.assert_close(plain, torch.tensor([[0.0, 0.0, math.log(1e-3), math.log(1e-3)],
+                                                    [math.log(1e-3), math.log(1e-3), 0.0, 0.0]]))
+    # class 0 touches candidate 0, class 1 does not; both touch candidate 1 at 20 cm. A miss on 0 then 20 cm on 1:
+    library = torch.tensor([[0.10, 0.20], [MISS, 0.20]])
+    chosen, read = torch.tensor([[0, 1]]), torch.tensor([[MISS, 0.20]])
+    aware = LibraryNamer(library, torch.tensor([0, 1]), 2, 0.005, 1e-3, noise, probe_length=0.6)(chosen, read)
+    torch.testing.assert_close(aware[0, 1, 0].exp(), torch.tensor(0.2 / (0.2 + 0.9)))
+    plain = LibraryNamer(library, torch.tensor([0, 1]), 2, 0.005, 1e-3)(chosen, read)
+    assert plain[0, 1, 0].exp() < 1e-2

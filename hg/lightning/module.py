@@ -383,7 +383,7 @@ class HapticGlance(pl.LightningModule):
 
     def build_library_namer(self, path: str, data) -> LibraryNamer:
         """The namer of the teacher file `path`'s planner over its library, read here in ideal mode as the planner
-        read it. Refuses a library of held-out poses, other objects or pose regions, or other candidates."""
+        read it, naming readings of the data's sensor with its faults (data.noise) in its likelihood. Refuses a library of held-out poses, other objects or pose regions, or other candidates."""
         if not Path(path).is_file():
             raise FileNotFoundError(f"model.library_namer: {path}: teacher file not found (write one with "
                                     "scripts/planner_ceiling.py --save-rollouts)")
@@ -401,7 +401,7 @@ class HapticGlance(pl.LightningModule):
         with ProbeSimulator(data.object_set, 1024, data.scene, "ideal", seed=0) as sim:
             library, labels = teacher_library(meta, sim, data.regions, data.n_classes)
         return LibraryNamer(torch.from_numpy(library), torch.from_numpy(labels).long(), data.n_classes,
-                            meta["sigma"], meta["mismatch"]).to(self.device)
+                            meta["sigma"], meta["mismatch"], data.noise, data.scene.probe_length).to(self.device)
 
     def library_log_posterior(self, rollout: Rollout) -> Tensor:
         """(B, N, classes) the library namer's log posterior after each probe: each probe's reading is how far from

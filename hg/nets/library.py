@@ -12,14 +12,25 @@ import torch
 from torch import Tensor, nn
 
 from hg.sim.library import MISS
+from hg.sim.simulator import SensorNoise
 
 
-def log_likelihood(readings: Tensor, library: Tensor, sigma: float, mismatch: float) -> Tensor:
+def log_likelihood(readings: Tensor, library: Tensor, sigma: float, mismatch: float,
+                   noise: SensorNoise = SensorNoise(), probe_length: float = 1.0) -> Tensor:
     """log p(each episode's reading (Q, 1) | each library episode's reading (Q, L)), up to a constant: a Gaussian in
-    the touch's distance along the ray, log(mismatch) where one touched and the other did not."""
+    the touch's distance along the ray, log(mismatch) where one touched and the other did not. With sensor faults
+    (`noise`, as the simulator makes them) that is the sensor's own model: a touch is reported as a miss with
+    miss_prob, a miss as a touch anywhere along the probe_length-long ray with false_contact_prob, and the touch
+    point is blurred by position_std; `mismatch` stays the floor of either mix-up (the library is read in ideal mode,
+    the arm's probes stray). Without faults this is the plain rule, so a noise-free namer is unchanged."""
+    sigma = math.hypot(sigma, noise.position_std)
+    kept = lambda p: math.log1p(-min(p, 1 - 1e-12))  # log(1 - p): a reading the fault left alone
     touched, library_touched = readings != MISS, library != MISS
-    gauss = -0.5 * ((library - readings) / sigma) ** 2
-    return torch.where(touched == library_touched, torch.where(touched, gauss, 0.0), math.log(mismatch))
+    false_touch = noise.false_contact_prob * sigma * math.sqrt(2 * math.pi) / probe_length  # on the Gaussian's scale
+    both = torch.where(touched, kept(noise.miss_prob) - 0.5 * ((library - readings) / sigma) ** 2,
+                       kept(noise.false_contact_prob))
+    one = torch.where(library_touched, math.log(max(noise.miss_prob, mismatch)), math.log(max(false_touch, mismatch)))
+    return torch.where(touched == library_touched, both, one)
 
 
 class LibraryNamer(nn.Module):
@@ -29,8 +40,9 @@ class LibraryNamer(nn.Module):
     recipe, hg.sim.library.teacher_library, and holds ~10^5-10^6 episodes)."""
 
     def __init__(self, library: Tensor, labels: Tensor, n_classes: int, sigma: float, mismatch: float,
-                 chunk: int = 32) -> None:
-        """library (L, C) readings (hg.sim.library.MISS where nothing was touched), labels (L,)."""
+                 noise: SensorNoise = SensorNoise(), probe_length: float = 1.0, chunk: int = 32) -> None:
+        """library (L, C) readings (hg.sim.library.MISS where nothing was touched), labels (L,); `noise` the faults
+        of the sensor whose readings it will name (log_likelihood)."""
         super().__init__()
         if library.ndim != 2 or labels.shape != library.shape[:1]:
             raise ValueError(f"LibraryNamer: library {tuple(library.shape)} and labels {tuple(labels.shape)}, expected "
@@ -41,7 +53,8 @@ class LibraryNamer(nn.Module):
         order = torch.argsort(labels, stable=True)  # by class, so each class's weights are one slice
         self.register_buffer("library", library[order].T.contiguous().float(), persistent=False)  # (C, L)
         self.ends = torch.bincount(labels, minlength=n_classes).cumsum(0).tolist()
-        self.sigma, self.mismatch, self.chunk = sigma, mismatch, chunk
+        self.sigma, self.mismatch, self.noise, self.probe_length, self.chunk = (sigma, mismatch, noise, probe_length,
+                                                                                  chunk)
 
     def forward(self, chosen: Tensor, readings: Tensor) -> Tensor:
         """chosen (B, N) candidate indices, readings (B, N) what each read (MISS: nothing) -> (B, N, classes) log
@@ -52,7 +65,7 @@ class LibraryNamer(nn.Module):
             after = []
             for k in range(chosen.shape[1]):
                 log_w += log_likelihood(readings[rows, k, None], self.library[chosen[rows, k]], self.sigma,
-                                        self.mismatch)
+                                        self.mismatch, self.noise, self.probe_length)
                 by_class = torch.stack([torch.logsumexp(log_w[:, a:b], 1) for a, b in zip(starts, self.ends)], 1)
                 after.append(torch.log_softmax(by_class, 1))
             out.append(torch.stack(after, 1))
