@@ -7,7 +7,9 @@ after 10 probes under the simulator's missed / false-contact noise, at noise rat
   Their test clouds use the same test episodes (labels and poses) as docs/results/table1.md.
 - Our model: the checkpoints of the best PCRN variant of docs/results/table1.json (chosen on val, trained
   without noise), tested on those episodes with SensorNoise(miss_prob = rate, false_contact_prob = rate): each
-  probe's reading is corrupted with probability `rate`.
+  probe's reading is corrupted with probability `rate`. A library namer in it (model.library_namer) weighs the
+  readings with the sensor's fault rates (its likelihood is the sensor's model, hg.nets.library.log_likelihood),
+  as PointNet and DGCNN are trained at the rate; its learned parts never saw noise.
 
 - Ours trained at the rate (`--models ours_trained`, beyond the paper; not in the default run, for its cost: one
   training per rate and seed): a table row's config (`--trained-row`, default the best PCRN variant) trained,
@@ -250,7 +252,9 @@ def noise_markdown(summary: dict, merged_at: str) -> str:
              "surface, top and bottom, without having to find the object first.",
              "- Ours: the best PCRN variant of `table1.md` (chosen on validation accuracy), trained without noise, "
              "tested with each probe's reading corrupted with probability = rate (a touch reported as a miss at the "
-             "ray's end, or a miss as a touch at a random point of the ray).",
+             "ray's end, or a miss as a touch at a random point of the ray). A library namer in it weighs the readings "
+             "with the sensor's fault rates (its likelihood is the sensor's model), as PointNet and DGCNN are "
+             "trained at the rate; its learned parts never saw noise.",
              *(["- Ours trained at the rate: that table row's config trained, validated and tested with the noise "
                 "at the rate, as PointNet and DGCNN are; at 0 % it is the row's own table run."]
                if any(m.startswith("ours_trained-") for m in summary) else []), "",
