@@ -162,6 +162,8 @@ def test_under_noise(checkpoint: Path, rate: float, test_episodes: int = TEST_EP
     columns = per_probe_table(trainer.callback_metrics, "test", model.hparams.n_probes)
     return {"accuracy": round(columns["stochastic"][-1], 4),
             "accuracy_per_probe": [round(v, 4) for v in columns["stochastic"]],
+            **({"accuracy_namer_alone_per_probe": [round(v, 4) for v in columns["namer_alone"]]}
+               if "namer_alone" in columns else {}),
             "checkpoint": repo_path(checkpoint), "test_wall_s": round(time.time() - start, 1)}
 
 
@@ -197,6 +199,10 @@ def merge(out: Path) -> dict:
             continue
         key = f"ours_trained-{run['row']}" if run["model"] == "ours_trained" else run["model"]
         runs.setdefault(key, {}).setdefault(run["rate"], []).append(run)
+        if "accuracy_namer_alone_per_probe" in run:  # the same rollouts named by the row's library namer alone
+            runs.setdefault("ours_namer_alone", {}).setdefault(run["rate"], []).append(
+                run | {"accuracy": run["accuracy_namer_alone_per_probe"][-1],
+                       "label": f"ours, its namer alone: {run['row']} after 10 probes"})
     if not runs:
         raise SystemExit(f"{out / 'noise_runs'}: no finished runs to merge")
     summary = {}
@@ -255,6 +261,9 @@ def noise_markdown(summary: dict, merged_at: str) -> str:
              "ray's end, or a miss as a touch at a random point of the ray). A library namer in it weighs the readings "
              "with the sensor's fault rates (its likelihood is the sensor's model), as PointNet and DGCNN are "
              "trained at the rate; its learned parts never saw noise.",
+             *(["- Ours, its namer alone: the same rollouts as ours, named by its library namer without our "
+                "classifier's logits (our classifier never saw sensor faults; the namer's likelihood models them)."]
+               if "ours_namer_alone" in summary else []),
              *(["- Ours trained at the rate: that table row's config trained, validated and tested with the noise "
                 "at the rate, as PointNet and DGCNN are; at 0 % it is the row's own table run."]
                if any(m.startswith("ours_trained-") for m in summary) else []), "",
@@ -279,7 +288,7 @@ def main() -> None:
     parser.add_argument("--ours-steps", type=int, default=None, help="override ours_trained's max_steps (smoke tests)")
     parser.add_argument("--runs-dir", type=Path, default=ROOT / "runs" / "noise", help="ours_trained's checkpoints")
     parser.add_argument("--rates", nargs="+", type=float, default=list(RATES))
-    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2], help="training seeds of the baselines")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2], help="training seeds of the baselines and ours_trained; ours: which of the table row's runs")
     parser.add_argument("--steps", type=int, default=1000, help="training steps of the baselines")
     parser.add_argument("--batch-size", type=int, default=64)
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
@@ -290,7 +299,7 @@ def main() -> None:
         if "ours" in args.models:
             row, config, table_runs, test_episodes = table_row(args.out)
             checkpoints = {seed: ROOT / run["best_checkpoint"] for seed, run in table_runs.items()}
-            jobs += [("ours", r, seed) for r in args.rates for seed in sorted(checkpoints)]
+            jobs += [("ours", r, seed) for seed in sorted(checkpoints) if seed in args.seeds for r in args.rates]
         if "ours_trained" in args.models:
             trained_row, trained_config, trained_runs, test_episodes = table_row(args.out, args.trained_row)
             jobs += [("ours_trained", r, seed) for seed in args.seeds for r in args.rates]

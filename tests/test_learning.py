@@ -265,6 +265,7 @@ def test_library_namer_reads_the_probes_as_the_planner_read_its_library_and_refu
                          enable_model_summary=False, accelerator="cpu")
     scored = trainer.validate(model, datamodule=data)[0]
     assert model.library_namer.library.shape == (77, 256) and 0 <= scored["val/acc"] <= 1
+    assert 0 <= scored[f"val/acc_namer@{data.n_probes}"] <= 1  # the namer alone on the same probes, logged beside
     assert "library_namer.library" not in model.state_dict()  # rebuilt from its recipe, not checkpointed
     assert (model.library_namer.noise, model.library_namer.probe_length) == (data.noise, data.scene.probe_length)
     batch = first_batch(data)

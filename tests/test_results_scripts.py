@@ -489,3 +489,20 @@ def test_accuracy_by_cell_names_a_choice_s_probes_as_the_planner_would(tmp_path)
     other = run("accuracy_by_cell", "--ckpt", str(checkpoint), "--episodes", "32", "--mode", "ideal", "--namer",
                 str(tmp_path / "other.npz"))
     assert other.returncode != 0 and "its 9 candidates are not the --namer teacher's 15" in other.stderr
+
+
+def test_noise_merge_adds_the_namer_alone_beside_ours(tmp_path):
+    """Ours' runs that logged their library namer alone on the same rollouts give a row of their own."""
+    (tmp_path / "noise_runs").mkdir()
+    (tmp_path / "table1.json").write_text(json.dumps({"best_pcrn": "namer_row"}))
+    for rate, seed, ours, alone in ((0.0, 0, 0.95, 0.96), (0.1, 0, 0.75, 0.84), (0.1, 1, 0.77, 0.86)):
+        record = {"model": "ours", "row": "namer_row", "rate": rate, "seed": seed, "accuracy": ours,
+                  "accuracy_namer_alone_per_probe": [0.3] * 9 + [alone], "label": "ours: namer_row after 10 probes",
+                  "commit": "abc1234", "hardware": "test"}
+        (tmp_path / "noise_runs" / f"ours-namer_row-rate{round(rate * 100):02d}-seed{seed}.json").write_text(
+            json.dumps(record))
+    merged = run("reproduce_noise", "--merge-only", "--out", str(tmp_path))
+    assert merged.returncode == 0, merged.stderr[-2000:]
+    summary = json.loads(merged.stdout.strip().splitlines()[-1])
+    assert summary["ours"] == [0.95, 0.76] and summary["ours_namer_alone"] == [0.96, 0.85]
+    assert "ours, its namer alone: namer_row" in (tmp_path / "noise.md").read_text()

@@ -34,9 +34,10 @@ def run_dir(trainer: pl.Trainer) -> Path:
 
 
 def per_probe_table(metrics: dict, stage: str, n_probes: int) -> dict[str, list[float]]:
-    """Columns of accuracy after probe k = 1..N found in logged metrics: stochastic and mean-action rollouts."""
+    """Columns of accuracy after probe k = 1..N found in logged metrics: stochastic and mean-action rollouts, and
+    a library namer alone on the stochastic rollout's probes (model.library_namer)."""
     columns = {}
-    for label, suffix in (("stochastic", ""), ("mean_action", "_mean_action")):
+    for label, suffix in (("stochastic", ""), ("mean_action", "_mean_action"), ("namer_alone", "_namer")):
         keys = [f"{stage}/acc{suffix}@{k}" for k in range(1, n_probes + 1)]
         if all(k in metrics for k in keys):
             columns[label] = [float(metrics[k]) for k in keys]

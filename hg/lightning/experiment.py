@@ -56,6 +56,7 @@ def fit_and_test(config: Path, seed: int, folder: Path, *, eval_seed: int, test_
         "max_steps": run.trainer.max_steps, "resumed_from_step": resumed_from,
         "accuracy": [round(v, 4) for v in columns["stochastic"]],
         "accuracy_mean_action": [round(v, 4) for v in columns["mean_action"]] if "mean_action" in columns else None,
+        **({"accuracy_namer_alone": [round(v, 4) for v in columns["namer_alone"]]} if "namer_alone" in columns else {}),
         "best_val_acc": round(float(best_score), 4) if best_score is not None else None,
         "best_checkpoint": repo_path(best_path),
         "train_wall_s": round(train_s, 1), "test_wall_s": round(test_s, 1),

@@ -829,11 +829,16 @@ class HapticGlance(pl.LightningModule):
         for suffix, deterministic in variants:
             rollout = self.rollout(labels, batch["poses"], seed, deterministic=deterministic)
             _, logits = self.evaluate(rollout, labels)
+            metrics = {}
             if self.library_namer is not None:
-                logits = logits + self.library_log_posterior(rollout)
+                named = self.library_log_posterior(rollout)
+                if not deterministic:  # the namer alone on the same probes: what our classifier adds, or costs
+                    alone = (named.argmax(-1) == labels[:, None]).float().mean(0)
+                    metrics |= {f"{stage}/acc_namer@{k + 1}": alone[k] for k in range(len(alone))}
+                logits = logits + named
             scored[deterministic] = (rollout, logits.detach())
             correct = (logits.argmax(-1) == labels[:, None]).float().mean(0)
-            metrics = {f"{stage}/acc{suffix}@{k + 1}": correct[k] for k in range(len(correct))}
+            metrics |= {f"{stage}/acc{suffix}@{k + 1}": correct[k] for k in range(len(correct))}
             metrics[f"{stage}/acc{suffix}"] = correct[-1]
             metrics[f"{stage}/touch_rate{suffix}"] = rollout.points[..., 3].mean()
             self.log_dict(metrics, batch_size=len(labels), sync_dist=True)
