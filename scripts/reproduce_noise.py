@@ -288,7 +288,8 @@ def main() -> None:
     parser.add_argument("--ours-steps", type=int, default=None, help="override ours_trained's max_steps (smoke tests)")
     parser.add_argument("--runs-dir", type=Path, default=ROOT / "runs" / "noise", help="ours_trained's checkpoints")
     parser.add_argument("--rates", nargs="+", type=float, default=list(RATES))
-    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2], help="training seeds of the baselines and ours_trained; ours: which of the table row's runs")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2],
+                        help="training seeds of the baselines and ours_trained; ours: which of the table row's runs")
     parser.add_argument("--steps", type=int, default=1000, help="training steps of the baselines")
     parser.add_argument("--batch-size", type=int, default=64)
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "results")

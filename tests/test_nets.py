@@ -430,7 +430,8 @@ def test_library_namer_models_the_sensor_faults_it_reads() -> None:
     ll = log_likelihood(torch.tensor([[0.20], [MISS]]), library.expand(2, 4) + torch.tensor([0, 0.01, 0, 0]), 0.005,
                         1e-3, noise, probe_length=0.6)
     sigma_scale = 0.005 * math.sqrt(2 * math.pi) / 0.6
-    expected = torch.tensor([[math.log(0.8), math.log(0.8) - 2.0, math.log(0.1 * sigma_scale), math.log(0.1 * sigma_scale)],
+    false_touch = math.log(0.1 * sigma_scale)
+    expected = torch.tensor([[math.log(0.8), math.log(0.8) - 2.0, false_touch, false_touch],
                              [math.log(0.2), math.log(0.2), math.log(0.9), math.log(0.9)]])
     torch.testing.assert_close(ll, expected)
     plain = log_likelihood(torch.tensor([[0.20], [MISS]]), library.expand(2, 4), 0.005, 1e-3)

@@ -383,7 +383,8 @@ class HapticGlance(pl.LightningModule):
 
     def build_library_namer(self, path: str, data) -> LibraryNamer:
         """The namer of the teacher file `path`'s planner over its library, read here in ideal mode as the planner
-        read it, naming readings of the data's sensor with its faults (data.noise) in its likelihood. Refuses a library of held-out poses, other objects or pose regions, or other candidates."""
+        read it, naming readings of the data's sensor with its faults (data.noise) in its likelihood. Refuses a
+        library of held-out poses, other objects or pose regions, or other candidates."""
         if not Path(path).is_file():
             raise FileNotFoundError(f"model.library_namer: {path}: teacher file not found (write one with "
                                     "scripts/planner_ceiling.py --save-rollouts)")

@@ -53,8 +53,8 @@ class LibraryNamer(nn.Module):
         order = torch.argsort(labels, stable=True)  # by class, so each class's weights are one slice
         self.register_buffer("library", library[order].T.contiguous().float(), persistent=False)  # (C, L)
         self.ends = torch.bincount(labels, minlength=n_classes).cumsum(0).tolist()
-        self.sigma, self.mismatch, self.noise, self.probe_length, self.chunk = (sigma, mismatch, noise, probe_length,
-                                                                                  chunk)
+        self.sigma, self.mismatch, self.chunk = sigma, mismatch, chunk
+        self.noise, self.probe_length = noise, probe_length
 
     def forward(self, chosen: Tensor, readings: Tensor) -> Tensor:
         """chosen (B, N) candidate indices, readings (B, N) what each read (MISS: nothing) -> (B, N, classes) log
