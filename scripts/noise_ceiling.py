@@ -39,7 +39,6 @@ sys.path.insert(0, str(ROOT / "scripts"))
 
 from hg.lightning import HapticGlance  # noqa: E402
 from hg.lightning.cli import datamodule_from_checkpoint  # noqa: E402
-from hg.lightning.data import EvalEpisodes  # noqa: E402
 from hg.provenance import commit, hardware  # noqa: E402
 from reproduce_noise import noise_args  # noqa: E402
 
@@ -112,13 +111,15 @@ def main() -> None:
     results, namer = {}, None
     for rate in args.rates:
         start = time.time()
-        data = datamodule_from_checkpoint(args.ckpt, args=[*noise_args(rate), "--data.eval_seed", "0"])  # the tables'
+        data = datamodule_from_checkpoint(args.ckpt, args=[*noise_args(rate), "--data.eval_seed", "0",  # the tables'
+                                                           f"--data.{args.split}_episodes", str(episodes)])
         try:
             namer = namer or model.build_library_namer(args.namer, data)
         except ValueError as exc:
             raise SystemExit(f"--namer: {exc}") from None
         namer.noise = data.noise  # the sensor-aware likelihood of this rate's faults
-        batches = EvalEpisodes(data.regions, args.split, episodes, 256, data.n_classes, seed=0).batches
+        data.setup("validate" if args.split == "val" else "test")
+        batches = data.val_dataloader() if args.split == "val" else data.test_dataloader()
         correct = {shown: {name: [] for name in READINGS} for shown in ("faulty", "clean")}
         faults = 0
         sim = data.make_simulator()
