@@ -444,3 +444,5 @@ def test_library_namer_models_the_sensor_faults_it_reads() -> None:
     torch.testing.assert_close(aware[0, 1, 0].exp(), torch.tensor(0.2 / (0.2 + 0.9)))
     plain = LibraryNamer(library, torch.tensor([0, 1]), 2, 0.005, 1e-3)(chosen, read)
     assert plain[0, 1, 0].exp() < 1e-2
+    dropped = LibraryNamer(library, torch.tensor([0, 1]), 2, 0.005, 1e-3)(chosen, read, torch.tensor([[True, False]]))
+    torch.testing.assert_close(dropped[0].exp(), torch.full((2, 2), 0.5))  # the miss left out, 20 cm fits both

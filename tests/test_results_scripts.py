@@ -506,3 +506,34 @@ def test_noise_merge_adds_the_namer_alone_beside_ours(tmp_path):
     summary = json.loads(merged.stdout.strip().splitlines()[-1])
     assert summary["ours"] == [0.95, 0.76] and summary["ours_namer_alone"] == [0.96, 0.85]
     assert "ours, its namer alone: namer_row" in (tmp_path / "noise.md").read_text()
+
+
+def test_noise_ceiling_reads_the_same_probes_with_faults_dropped_and_without_faults(tmp_path):
+    """At rate 1 every reading is corrupted: the script counts them all, and the namer told which readings are
+    faulty has nothing left to read, so its accuracy never moves from the first probe's."""
+    teacher = tmp_path / "teacher.npz"
+    made = subprocess.run([sys.executable, str(ROOT / "scripts" / "planner_ceiling.py"), "--library-split", "train",
+                           "--split", "train", "--library", "256", "--episodes", "8", "--n-probes", "4",
+                           "--save-rollouts", str(teacher)], capture_output=True, text=True, env=ENV, timeout=300)
+    assert made.returncode == 0, made.stderr[-2000:]
+    fit = subprocess.run([sys.executable, "-m", "hg.lightning.cli", "fit", "--config", str(ROOT / "configs" / "tiny.yaml"),
+                          "--trainer.max_steps", "1", "--model.location", "candidates", "--model.choice_reads_probes",
+                          "true"], capture_output=True, text=True, env=ENV, cwd=tmp_path, timeout=300)
+    assert fit.returncode == 0, fit.stderr[-2000:]
+    checkpoint = next(tmp_path.glob("runs/haptic-glance/*/checkpoints/last.ckpt"))
+    proc = run("noise_ceiling", "--ckpt", str(checkpoint), "--namer", str(teacher), "--rates", "1.0", "0.2",
+               "--episodes", "32")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert result["1.0"]["faults_per_episode"] == 4  # tiny: 4 probes, all faulty
+    assert 0 < result["0.2"]["faults_per_episode"] < 4
+    for rate in ("1.0", "0.2"):
+        for shown in ("policy_reads_faulty", "policy_reads_clean"):
+            assert set(result[rate][shown]) == {"faulty", "faults_dropped", "clean"}
+            assert all(len(a) == 4 and all(0 <= v <= 1 for v in a) for a in result[rate][shown].values())
+    assert len(set(result["1.0"]["policy_reads_faulty"]["faults_dropped"])) == 1
+    assert result["commit"] and result["split"] == "val" and result["episodes"] == 32
+    missing = run("noise_ceiling", "--ckpt", str(tmp_path / "nope.ckpt"), "--namer", str(teacher))
+    assert missing.returncode != 0 and "nope.ckpt: checkpoint not found" in missing.stderr
+    bad = run("noise_ceiling", "--ckpt", str(checkpoint), "--namer", str(teacher), "--rates", "0")
+    assert bad.returncode != 0 and "--rates 0.0: a fault rate must be in (0, 1]" in bad.stderr

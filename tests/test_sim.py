@@ -106,11 +106,18 @@ def test_same_seed_same_probes():
 def test_noise_flips_contacts():
     sim = ProbeSimulator(batch_size=64, mode="ideal", noise=SensorNoise(miss_prob=1.0))
     sim.reset(np.full(64, 1), np.repeat(at(), 64, axis=0))
-    assert (sim.probe(np.repeat(DOWN, 64, axis=0)).points[:, 3] == 0).all()
+    result = sim.probe(np.repeat(DOWN, 64, axis=0))
+    assert (result.points[:, 3] == 0).all() and (result.clean_points[:, 3] == 1).all()  # what it did touch is kept
     sim.noise = SensorNoise(false_contact_prob=1.0)
     sim.reset(np.full(64, 3), np.repeat(at(), 64, axis=0))  # tire: straight down misses
-    points = sim.probe(np.repeat(DOWN, 64, axis=0)).points
+    result = sim.probe(np.repeat(DOWN, 64, axis=0))
+    points = result.points
     assert (points[:, 3] == 1).all() and (points[:, 2] < 0).all() and (points[:, 2] > -0.6).all()
+    assert (result.clean_points[:, 3] == 0).all()
+    sim.noise = SensorNoise()
+    sim.reset(np.full(64, 3), np.repeat(at(), 64, axis=0))
+    result = sim.probe(np.repeat(DOWN, 64, axis=0))
+    np.testing.assert_array_equal(result.clean_points, result.points)  # no faults: the sensor is the clean one
 
 
 def test_folder_object_set(tmp_path):

@@ -404,14 +404,18 @@ class HapticGlance(pl.LightningModule):
         return LibraryNamer(torch.from_numpy(library), torch.from_numpy(labels).long(), data.n_classes,
                             meta["sigma"], meta["mismatch"], data.noise, data.scene.probe_length).to(self.device)
 
-    def library_log_posterior(self, rollout: Rollout) -> Tensor:
-        """(B, N, classes) the library namer's log posterior after each probe: each probe's reading is how far from
-        its requested entry point it touched (metres), as the planner read its candidates."""
+    def library_readings(self, rollout: Rollout) -> tuple[Tensor, Tensor]:
+        """(B, N) the candidates probed and what each read, as the planner read its candidates: how far from its
+        requested entry point it touched (metres), MISS where nothing was touched."""
         chosen = self.location.index_of(rollout.actions)
         entries = torch.from_numpy(self.sim.scene.request_to_probe(self.location.candidates.cpu().numpy())[0])
         entries = entries.to(rollout.points)[chosen]
         distance = (rollout.points[..., :3] / self.hparams.point_scale - entries).norm(dim=-1)
-        return self.library_namer(chosen, torch.where(rollout.points[..., 3] > 0.5, distance, MISS))
+        return chosen, torch.where(rollout.points[..., 3] > 0.5, distance, MISS)
+
+    def library_log_posterior(self, rollout: Rollout) -> Tensor:
+        """(B, N, classes) the library namer's log posterior after each probe."""
+        return self.library_namer(*self.library_readings(rollout))
 
     def teardown(self, stage: str) -> None:
         if self.sim is not None:

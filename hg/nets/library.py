@@ -56,16 +56,18 @@ class LibraryNamer(nn.Module):
         self.sigma, self.mismatch, self.chunk = sigma, mismatch, chunk
         self.noise, self.probe_length = noise, probe_length
 
-    def forward(self, chosen: Tensor, readings: Tensor) -> Tensor:
+    def forward(self, chosen: Tensor, readings: Tensor, ignore: Tensor | None = None) -> Tensor:
         """chosen (B, N) candidate indices, readings (B, N) what each read (MISS: nothing) -> (B, N, classes) log
-        posteriors after probes 1..k+1 (a uniform prior over the library's episodes)."""
+        posteriors after probes 1..k+1 (a uniform prior over the library's episodes). ignore (B, N) bool: readings
+        left out (an oracle that knows which readings the sensor corrupted, scripts/noise_ceiling.py)."""
         out, starts = [], [0] + self.ends[:-1]
         for rows in torch.split(torch.arange(len(chosen)), self.chunk):  # (chunk, L) weights at a time
             log_w = torch.zeros(len(rows), self.library.shape[1], device=self.library.device)
             after = []
             for k in range(chosen.shape[1]):
-                log_w += log_likelihood(readings[rows, k, None], self.library[chosen[rows, k]], self.sigma,
-                                        self.mismatch, self.noise, self.probe_length)
+                log_p = log_likelihood(readings[rows, k, None], self.library[chosen[rows, k]], self.sigma,
+                                       self.mismatch, self.noise, self.probe_length)
+                log_w += log_p if ignore is None else log_p.masked_fill(ignore[rows, k, None], 0.0)
                 by_class = torch.stack([torch.logsumexp(log_w[:, a:b], 1) for a, b in zip(starts, self.ends)], 1)
                 after.append(torch.log_softmax(by_class, 1))
             out.append(torch.stack(after, 1))

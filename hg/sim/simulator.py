@@ -62,6 +62,7 @@ class ProbeResult:
     entry: np.ndarray  # (n, 3) requested entry point P
     direction: np.ndarray  # (n, 3) requested unit direction u
     pose_error: np.ndarray  # (n, 2) achieved-vs-requested tip position (m) and axis angle (deg); 0 in ideal mode
+    clean_points: np.ndarray  # (n, 4) what a fault-free sensor reported (== points without noise); for analysis
 
 
 class ProbeSimulator:
@@ -175,8 +176,9 @@ class ProbeSimulator:
         points[:, :3] = end
         points[hit, :3] = position[hit] - offset[hit]
         points[:, 3] = hit
+        clean = points.copy()
         self._apply_noise(points, start, end, hit)
-        return ProbeResult(points, entry, direction, error)
+        return ProbeResult(points, entry, direction, error, clean)
 
     def _apply_noise(self, points: np.ndarray, start: np.ndarray, end: np.ndarray, hit: np.ndarray) -> None:
         """Sensor faults in place: a missed contact reports the ray's end, a false one a point along the ray."""
