@@ -73,11 +73,11 @@ class SensorTap:
 
 
 def correct_after_each_probe(model: HapticGlance, namer, rollout, faulty: torch.Tensor, clean: torch.Tensor,
-                             labels: torch.Tensor) -> dict[str, np.ndarray]:
-    """(B, N) bool, for each way of reading the rollout's probes: is the namer's class right after probe k+1."""
+                             corrupted: torch.Tensor, labels: torch.Tensor) -> dict[str, np.ndarray]:
+    """(B, N) bool, for each way of reading the rollout's probes: is the namer's class right after probe k+1.
+    corrupted (B, N): the readings the sensor's faults flipped."""
     chosen, read = model.library_readings(dataclasses.replace(rollout, points=faulty))
     _, clean_read = model.library_readings(dataclasses.replace(rollout, points=clean))
-    corrupted = faulty[..., 3] != clean[..., 3]
     posteriors = {"faulty": namer(chosen, read), "faults_dropped": namer(chosen, read, corrupted),
                   "clean": namer(chosen, clean_read)}
     return {name: (p.argmax(-1) == labels[:, None]).numpy() for name, p in posteriors.items()}
@@ -129,8 +129,9 @@ def main() -> None:
                     model.sim = tap = SensorTap(sim, shown)
                     rollout = model.rollout(batch["labels"], batch["poses"], int(batch["seed"]))
                     faulty, clean = tap.taken(model.hparams.point_scale)
-                    faults += int((faulty[..., 3] != clean[..., 3]).sum()) if shown == "faulty" else 0
-                    for name, right in correct_after_each_probe(model, namer, rollout, faulty, clean,
+                    corrupted = faulty[..., 3] != clean[..., 3]
+                    faults += int(corrupted.sum()) if shown == "faulty" else 0
+                    for name, right in correct_after_each_probe(model, namer, rollout, faulty, clean, corrupted,
                                                                 batch["labels"]).items():
                         correct[shown][name].append(right)
         sim.close()
@@ -139,8 +140,7 @@ def main() -> None:
                                       for name, c in by_reading.items()}
             for shown, by_reading in correct.items()}
         print(f"rate {rate}: after {model.hparams.n_probes} probes "
-              + ", ".join(f"{shown}: " + " / ".join(f"{name} {accuracy[-1]:.3f}"
-                                                                 for name, accuracy in r.items())
+              + ", ".join(f"{shown}: " + " / ".join(f"{name} {accuracy[-1]:.3f}" for name, accuracy in r.items())
                           for shown, r in results[str(rate)].items() if shown != "faults_per_episode")
               + f" ({time.time() - start:.0f} s)", flush=True)
     print(json.dumps(results | {"ckpt": str(args.ckpt), "split": args.split, "mode": data.hparams.mode,
