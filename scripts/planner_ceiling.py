@@ -54,7 +54,7 @@ sys.path.insert(0, str(ROOT))
 from hg.atomic import write_atomic  # noqa: E402
 from hg.provenance import commit  # noqa: E402
 from hg.nets.library import log_likelihood  # noqa: E402
-from hg.sim import SPLITS, PoseRegions, ProbeSimulator, candidate_requests, sample_episodes  # noqa: E402
+from hg.sim import SPLITS, PoseRegions, ProbeSimulator, SensorNoise, candidate_requests, sample_episodes  # noqa: E402
 from hg.sim.library import MISS, library_readings, readings  # noqa: E402
 
 CHUNK = 128  # scored episodes planned side by side: their weights over the library are (CHUNK, L)
@@ -84,12 +84,16 @@ def expected_entropy(cells: torch.Tensor, weights: torch.Tensor, n_bins: int, n_
 
 def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tensor, labels: torch.Tensor,
                    n_probes: int, n_bins: int, n_classes: int, sigma: float, mismatch: float,
-                   choose: Callable[[int, torch.Tensor, torch.Tensor], torch.Tensor] | None = None
+                   choose: Callable[[int, torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+                   faulty: torch.Tensor | None = None, noise: SensorNoise = SensorNoise(), probe_length: float = 1.0
                    ) -> tuple[np.ndarray, np.ndarray]:
     """(Q, N) candidates probed in each episode (its readings of every candidate: `query`, (Q, C)) and the class
     named after each probe: the planner's choices, or those of `choose(k, used, query)` -> (Q,) candidate indices
     (a fixed sequence, or a network copying the planner), used (Q, C) bool marking the candidates probed so far.
-    library: (C, L) readings."""
+    library: (C, L) readings. With a faulty sensor, `faulty` (N, Q, C) holds what probe k reads from each candidate
+    (an independent draw of the sensor's faults per probe) and `noise` its fault rates: the library is weighed with
+    the sensor's model (log_likelihood), and the planner may probe a candidate again, since a second reading can
+    outvote a corrupted first one."""
     log_w = torch.zeros(len(query), library.shape[1])
     weights = torch.ones_like(log_w)  # exp(log_w) relative to each episode's most likely library episode
     used = torch.zeros(query.shape, dtype=torch.bool)
@@ -100,10 +104,13 @@ def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tens
             c = choose(k, used, query)
         else:
             score = expected_entropy(cells, weights, n_bins, n_classes)
-            c = score.masked_fill(used, math.inf).argmin(1)  # in ideal mode a repeated probe reads the same
+            if faulty is None:  # in ideal mode a repeated probe reads the same
+                score = score.masked_fill(used, math.inf)
+            c = score.argmin(1)
         used[rows, c] = True
         chosen.append(c)
-        log_w = log_w + log_likelihood(query[rows, c][:, None], library[c], sigma, mismatch)
+        read = query[rows, c] if faulty is None else faulty[k, rows, c]
+        log_w = log_w + log_likelihood(read[:, None], library[c], sigma, mismatch, noise, probe_length)
         weights = torch.exp(log_w - log_w.max(1, keepdim=True).values)
         named.append((weights @ one_hot).argmax(1))
     return torch.stack(chosen, 1).numpy(), torch.stack(named, 1).numpy()
@@ -167,6 +174,9 @@ def main() -> None:
     parser.add_argument("--mismatch", type=float, default=1e-3, help="weight kept by a touch read as a miss or back")
     parser.add_argument("--bin", type=float, default=0.01, help="reading bins for the planner's entropy (m)")
     parser.add_argument("--fixed", action="store_true", help="also score the straight centre-out scan")
+    parser.add_argument("--noise", type=float, default=0.0,
+                        help="sensor fault rate of the scored episodes' probes: SensorNoise(miss_prob = false_contact_prob "
+                             "= rate), as reproduce_noise.py; the planner weighs with the sensor's model and may re-probe")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--save-rollouts", type=Path, help="write the planner's episodes here (.npz): a teacher")
     args = parser.parse_args()
@@ -182,6 +192,11 @@ def main() -> None:
         parser.error(f"--leans {args.leans}: each must be in (0, 2] (uz = 1 - lean stays in [-1, 1])")
     if args.sigma <= 0 or args.bin <= 0 or not 0 < args.mismatch < 1:
         parser.error("--sigma and --bin must be > 0, --mismatch in (0, 1)")
+    if not 0 <= args.noise < 1:
+        parser.error(f"--noise {args.noise}: must be in [0, 1)")
+    if args.noise and args.save_rollouts:
+        parser.error("--save-rollouts with --noise: a teacher's file holds no fault draws, so its choices could not "
+                     "be replayed")
     candidates = candidate_requests(args.places, args.span, args.leans)
     if args.n_probes > len(candidates):
         parser.error(f"--n-probes {args.n_probes}: more than the {len(candidates)} candidates")
@@ -202,11 +217,12 @@ def main() -> None:
                                     np.random.default_rng(args.seed + 1))
     library, labels = library_readings(sim, labels, poses, args.places, args.span, args.leans, args.shifts,
                                        args.mirror)
-    if args.mode == "arm":  # the arm's achieved probes stray from the requested ones the library was read with
-        with ProbeSimulator("hg4", batch_size=256, mode="arm", seed=args.seed) as arm:
-            query = readings(arm, query_labels, query_poses, candidates)
-    else:
-        query = readings(sim, query_labels, query_poses, candidates)
+    noise = SensorNoise(miss_prob=args.noise, false_contact_prob=args.noise)
+    with ProbeSimulator("hg4", batch_size=256 if args.mode == "arm" else 1024, mode=args.mode, noise=noise,
+                        seed=args.seed) as probe:  # in arm mode its achieved probes stray from the requested ones
+        query = readings(probe, query_labels, query_poses, candidates, clean=True)
+        faulty = (torch.from_numpy(np.stack([readings(probe, query_labels, query_poses, candidates)
+                                             for _ in range(args.n_probes)])) if args.noise else None)
     print(f"{len(candidates)} candidates x {args.library} {args.library_split} library episodes "
           f"({len(library)} with their shifts and mirror images), "
           f"{args.episodes} {args.split} episodes ({args.mode} mode): probed in {time.time() - start:.0f} s", flush=True)
@@ -222,7 +238,8 @@ def main() -> None:
         start = time.time()
         chosen, named = map(np.concatenate, zip(*(
             probe_episodes(query_t[i:i + CHUNK], library_t, cells, labels_t, args.n_probes, n_bins, n_classes,
-                           args.sigma, args.mismatch, choose) for i in range(0, len(query), CHUNK))))
+                           args.sigma, args.mismatch, choose, None if faulty is None else faulty[:, i:i + CHUNK],
+                           noise, sim.scene.probe_length) for i in range(0, len(query), CHUNK))))
         r = results[name] = summary(chosen, named, query_labels, query, candidates, offsets, sim)
         if name == "planner" and args.save_rollouts:
             save_rollouts(args.save_rollouts, query_labels, query_poses, candidates[chosen], vars(args) | {"summary": r})
@@ -231,7 +248,7 @@ def main() -> None:
               f"{r['tilt_deg']:.1f} deg, {r['places']:.1f} places ({time.time() - start:.0f} s)", flush=True)
     sim.close()
     print(json.dumps(results | {"library": args.library, "library_split": args.library_split,
-                                "shifts": args.shifts, "mirror": args.mirror, "library_episodes": len(library),
+                                "shifts": args.shifts, "mirror": args.mirror, "library_episodes": len(library), "noise": args.noise,
                                 "episodes": args.episodes, "split": args.split, "mode": args.mode,
                                 "table_episodes": args.table_episodes, "candidates": len(candidates)}))
 

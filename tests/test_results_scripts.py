@@ -348,6 +348,15 @@ def test_planner_probes_where_the_reading_tells_the_class_and_runs_on_real_probe
     fixed, named = planner.probe_episodes(queries, library.T, cells, labels, 2, 12, 2, 0.005, 1e-3,
                                           planner.fixed_sequence(np.array([0, 2])))
     assert fixed.tolist() == [[0, 2], [0, 2]] and named[:, 0].tolist() == [0, 0]  # ties: the first class
+    # a faulty sensor: the first reading of the telling probe is a touch reported as a miss; the planner weighing
+    # with the sensor's model probes it again, and the second reading outvotes the first
+    faulty = torch.tensor([[[0.1, planner.MISS, 0.3]], [[0.1, 0.2, 0.3]]])
+    noise = planner.SensorNoise(miss_prob=0.1, false_contact_prob=0.1)
+    again, named = planner.probe_episodes(queries[:1], library.T, cells, labels, 2, 12, 2, 0.005, 1e-3,
+                                          faulty=faulty, noise=noise)
+    assert again.tolist() == [[1, 1]] and named.tolist() == [[0, 1]]
+    _, named = planner.probe_episodes(queries[:1], library.T, cells, labels, 1, 12, 2, 0.005, 1e-3, faulty=faulty)
+    assert named.tolist() == [[0]]  # the fault read as the sensor's word without its model
     ll = planner.log_likelihood(torch.tensor([[0.2]]), torch.tensor([[0.2, 0.21, planner.MISS]]), 0.01, 1e-3)
     assert ll[0].tolist() == pytest.approx([0.0, -0.5, np.log(1e-3)], rel=1e-4)
     real = run("planner_ceiling", "--episodes", "16", "--library", "2048", "--n-probes", "3", "--places", "3",
@@ -357,8 +366,15 @@ def test_planner_probes_where_the_reading_tells_the_class_and_runs_on_real_probe
     assert result["candidates"] == 9 and len(result["planner"]["accuracy"]) == 3
     assert result["fixed"]["tilt_deg"] == 0 and result["fixed"]["places"] == 3  # straight, one probe per place
     assert all(0 <= a <= 1 for a in result["planner"]["accuracy"])
+    noisy = run("planner_ceiling", "--episodes", "16", "--library", "2048", "--n-probes", "3", "--places", "3",
+                "--leans", "1.0", "--noise", "0.3")
+    assert noisy.returncode == 0, noisy.stderr[-2000:]
+    result = json.loads(noisy.stdout.strip().splitlines()[-1])
+    assert result["noise"] == 0.3 and all(0 <= a <= 1 for a in result["planner"]["accuracy"])
     bad = run("planner_ceiling", "--n-probes", "10", "--places", "1", "--leans")
     assert bad.returncode != 0 and "--n-probes 10: more than the 1 candidates" in bad.stderr
+    bad = run("planner_ceiling", "--noise", "1.0")
+    assert bad.returncode != 0 and "--noise 1.0: must be in [0, 1)" in bad.stderr
 
 
 def test_planner_library_shifts_and_mirror_images_read_as_moved_and_mirrored_objects_do():
