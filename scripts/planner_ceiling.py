@@ -72,10 +72,20 @@ def cell_matrix(bins: np.ndarray, labels: np.ndarray, n_bins: int, n_classes: in
                                        check_invariants=False).coalesce().to_sparse_csr()
 
 
-def expected_entropy(cells: torch.Tensor, weights: torch.Tensor, n_bins: int, n_classes: int) -> torch.Tensor:
+def expected_entropy(cells: torch.Tensor, weights: torch.Tensor, n_bins: int, n_classes: int,
+                     noise: SensorNoise = SensorNoise()) -> torch.Tensor:
     """(Q, C) the class entropy left after reading each candidate, expected over each episode's weighting of the
-    library (Q, L): the weights fall into (reading, class) cells per candidate."""
+    library (Q, L): the weights fall into (reading, class) cells per candidate (bin 0: a miss). With sensor faults
+    (`noise`) the reading is the sensor's: a touch's weight goes to the miss bin with miss_prob, a miss's spreads over
+    the ray's bins with false_contact_prob, so a reading the faults often corrupt is worth less."""
     mass = (cells @ weights.T).T.reshape(len(weights), -1, n_bins, n_classes)
+    if noise.miss_prob or noise.false_contact_prob:
+        miss, touch = mass[:, :, :1], mass[:, :, 1:]
+        ray_bins = n_bins - 2  # the last bin only holds touches exactly at the ray's end
+        false = torch.zeros_like(touch)
+        false[:, :, :ray_bins] = noise.false_contact_prob * miss / ray_bins
+        mass = torch.cat([(1 - noise.false_contact_prob) * miss + noise.miss_prob * touch.sum(2, keepdim=True),
+                          (1 - noise.miss_prob) * touch + false], 2)
     per_bin = mass.sum(-1, keepdim=True)
     p = mass / per_bin.clamp(min=1e-30)
     entropy = -(p * torch.log(p.clamp(min=1e-30))).sum(-1)
@@ -103,7 +113,7 @@ def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tens
         if choose is not None:
             c = choose(k, used, query)
         else:
-            score = expected_entropy(cells, weights, n_bins, n_classes)
+            score = expected_entropy(cells, weights, n_bins, n_classes, noise)
             if faulty is None:  # in ideal mode a repeated probe reads the same
                 score = score.masked_fill(used, math.inf)
             c = score.argmin(1)

@@ -341,6 +341,9 @@ def test_planner_probes_where_the_reading_tells_the_class_and_runs_on_real_probe
     cells = planner.cell_matrix(bins, labels.numpy(), 12, 2)
     entropy = planner.expected_entropy(cells, torch.ones(1, 400), 12, 2)[0]
     assert entropy.argmin() == 1 and entropy[1] == pytest.approx(0.0) and entropy[0] == pytest.approx(np.log(2))
+    noisy = planner.expected_entropy(cells, torch.ones(1, 400), 12, 2,
+                                     planner.SensorNoise(miss_prob=0.1, false_contact_prob=0.1))[0]
+    assert 0 < noisy[1] < noisy[0] == pytest.approx(np.log(2))  # still the telling probe, no longer sure to tell
     queries = torch.tensor([[0.1, 0.2, 0.3], [0.1, planner.MISS, 0.3]])
     chosen, named = planner.probe_episodes(queries, library.T, cells, labels, 2, 12, 2, 0.005, 1e-3)
     assert chosen[:, 0].tolist() == [1, 1] and named[:, 0].tolist() == [1, 0]  # the telling probe first
