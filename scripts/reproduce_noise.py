@@ -11,6 +11,11 @@ after 10 probes under the simulator's missed / false-contact noise, at noise rat
   readings with the sensor's fault rates (its likelihood is the sensor's model, hg.nets.library.log_likelihood),
   as PointNet and DGCNN are trained at the rate; its learned parts never saw noise.
 
+- The greedy planner under faults (`--models planner`, beyond the paper, no learning): Table 1's planner row
+  (scripts/planner_ceiling.py over its library of training episodes, on the same test episodes in arm mode) with
+  the sensor faulty at the rate; it weighs its library with the sensor's model, expects faulty readings when it
+  picks a probe, and may probe a candidate again. At rate 0 it is the table's planner run. What probes placed
+  under faults can say, for the policy copying the planner to aim at.
 - Ours trained at the rate (`--models ours_trained`, beyond the paper; not in the default run, for its cost: one
   training per rate and seed): a table row's config (`--trained-row`, default the best PCRN variant) trained,
   validated and tested with the sensor noise at the rate, as the point-cloud baselines are. At rate 0 it is
@@ -23,6 +28,7 @@ table1.json names best now. Last line printed: JSON of the mean accuracies per m
     .venv/bin/python scripts/reproduce_noise.py                 # needs the table1 runs' checkpoints for 'ours'
     .venv/bin/python scripts/reproduce_noise.py --models pointnet dgcnn --seeds 0
     .venv/bin/python scripts/reproduce_noise.py --models ours_trained --rates 0.3 --seeds 0
+    .venv/bin/python scripts/reproduce_noise.py --models planner --seeds 0 --rates 0.1 0.2 0.3 0.4 0.5
 """
 from __future__ import annotations
 
@@ -38,6 +44,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "scripts"))
 
 import matplotlib  # noqa: E402
 
@@ -167,6 +174,24 @@ def test_under_noise(checkpoint: Path, rate: float, test_episodes: int = TEST_EP
             "checkpoint": repo_path(checkpoint), "test_wall_s": round(time.time() - start, 1)}
 
 
+def plan_under_noise(seed: int, rate: float, test_episodes: int, out: Path) -> dict:
+    """Table 1's planner row on its test episodes with the sensor faulty at the rate (planner_ceiling.py --noise);
+    at rate 0 the table's own planner run."""
+    from reproduce_table1 import PLANNER_LIBRARY, plan_and_test
+
+    if rate == 0:
+        path = out / "runs" / f"planner-seed{seed}.json"
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no table run of the planner with seed {seed} (rate 0 is the table's own "
+                                    "run; run it with reproduce_table1.py --one planner SEED)")
+        run = json.loads(path.read_text())
+        return {k: run[k] for k in ("command", "train_wall_s", "test_fingerprint", "commit", "hardware")} | {
+            "accuracy_per_probe": run["accuracy"], "accuracy": run["accuracy"][-1]}  # where and when it ran
+    facts = plan_and_test(PLANNER_LIBRARY, seed, test_episodes, ("--noise", str(rate)))
+    return {"accuracy": facts["accuracy"][-1], "accuracy_per_probe": facts["accuracy"],
+            **{k: facts[k] for k in ("command", "train_wall_s", "test_fingerprint")}}
+
+
 def train_under_noise(row: str, config: str, seed: int, rate: float, table_runs: dict[int, dict], runs_dir: Path,
                       test_episodes: int, steps: int | None) -> dict:
     """Our model trained at the rate it is tested at, as the point-cloud baselines are: the row's config with the
@@ -266,7 +291,12 @@ def noise_markdown(summary: dict, merged_at: str) -> str:
                if "ours_namer_alone" in summary else []),
              *(["- Ours trained at the rate: that table row's config trained, validated and tested with the noise "
                 "at the rate, as PointNet and DGCNN are; at 0 % it is the row's own table run."]
-               if any(m.startswith("ours_trained-") for m in summary) else []), "",
+               if any(m.startswith("ours_trained-") for m in summary) else []),
+             *(["- Greedy planner under faults (beyond the paper, no learning): Table 1's planner row on the same "
+                "episodes with the faulty sensor; it weighs its library of training episodes with the sensor's model, "
+                "expects faulty readings when it picks a probe, and may probe a candidate again (one seed: the "
+                "library's draw and the faults'). At 0 % it is the table's planner run. What probes placed under "
+                "faults can say: the reference for a policy copying it."] if "planner" in summary else []), "",
              "| model | " + " | ".join(f"{100 * r:.0f} %" for r in rates) + " | seeds | commits | hardware |",
              "|---|" + "---:|" * len(rates) + "---|---|---|"]
     for entry in summary.values():
@@ -282,7 +312,7 @@ def noise_markdown(summary: dict, merged_at: str) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--models", nargs="+", default=["pointnet", "dgcnn", "ours"],
-                        choices=["pointnet", "dgcnn", "ours", "ours_trained"])
+                        choices=["pointnet", "dgcnn", "ours", "ours_trained", "planner"])
     parser.add_argument("--trained-row", default=None,
                         help="table row that ours_trained trains at each rate (default: the best PCRN variant)")
     parser.add_argument("--ours-steps", type=int, default=None, help="override ours_trained's max_steps (smoke tests)")
@@ -304,6 +334,8 @@ def main() -> None:
         if "ours_trained" in args.models:
             trained_row, trained_config, trained_runs, test_episodes = table_row(args.out, args.trained_row)
             jobs += [("ours_trained", r, seed) for seed in args.seeds for r in args.rates]
+        if "planner" in args.models:
+            jobs += [("planner", r, seed) for seed in args.seeds for r in args.rates]
         for model, rate, seed in jobs:
             name = model  # ours and ours_trained: per table row
             if model == "ours":
@@ -323,10 +355,14 @@ def main() -> None:
                                            test_episodes, args.ours_steps)
                 result["label"] = f"ours trained at the rate: {trained_row} after 10 probes"
                 result["row"] = trained_row
+            elif model == "planner":
+                result = plan_under_noise(seed, rate, TEST_EPISODES, args.out)
+                result["label"] = "greedy planner under faults, fault-aware, may re-probe (beyond the paper, no learning)"
             else:
                 result = train_point_cloud_net(model, rate, seed, args.steps, args.batch_size)
                 result["label"] = NETS[model][0]
-            result.update(model=model, rate=rate, seed=seed, commit=code_commit, hardware=hardware())
+            result = {"commit": code_commit, "hardware": hardware()} | result  # a reused table run keeps its own
+            result.update(model=model, rate=rate, seed=seed)
             write_atomic(path, json.dumps(result, indent=1) + "\n")
             print(f"{path.stem}: accuracy {result['accuracy']:.3f}", flush=True)
     print(json.dumps(merge(args.out)))

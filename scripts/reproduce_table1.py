@@ -305,15 +305,16 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out_dir: Path, steps: in
     write_atomic(out_dir / "runs" / f"{name}.json", json.dumps(result, indent=1) + "\n")
 
 
-def plan_and_test(library: tuple[str, ...], seed: int, test_episodes: int) -> dict:
+def plan_and_test(library: tuple[str, ...], seed: int, test_episodes: int, extra: tuple[str, ...] = ()) -> dict:
     """A planner row's run: scripts/planner_ceiling.py with its `library` (drawn with `seed`) on the test episodes
-    every row meets, in arm mode; the facts fit_and_test returns, with the planner's wall time (library and
-    planning) as the training time. Nothing is learned, so there is no checkpoint and no validation score."""
+    every row meets, in arm mode (`extra`: more of its arguments, e.g. --noise); the facts fit_and_test returns, with
+    the planner's wall time (library and planning) as the training time. Nothing is learned, so there is no
+    checkpoint and no validation score."""
     from hg.lightning.data import ProbeDataModule
     from hg.lightning.experiment import test_fingerprint
 
     command = ["scripts/planner_ceiling.py", *library, "--split", "test", "--episodes", str(test_episodes),
-               "--table-episodes", "--mode", "arm", "--seed", str(seed)]
+               "--table-episodes", "--mode", "arm", "--seed", str(seed), *extra]
     start = time.time()
     proc = subprocess.run([sys.executable, *command], capture_output=True, text=True, cwd=ROOT)
     if proc.returncode:
