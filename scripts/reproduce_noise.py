@@ -174,9 +174,10 @@ def test_under_noise(checkpoint: Path, rate: float, test_episodes: int = TEST_EP
             "checkpoint": repo_path(checkpoint), "test_wall_s": round(time.time() - start, 1)}
 
 
-def plan_under_noise(seed: int, rate: float, test_episodes: int, out: Path) -> dict:
-    """Table 1's planner row on its test episodes with the sensor faulty at the rate (planner_ceiling.py --noise);
-    at rate 0 the table's own planner run."""
+def plan_under_noise(seed: int, rate: float, test_episodes: int, out: Path, library: tuple[str, ...] | None = None
+                     ) -> dict:
+    """Table 1's planner row on its test episodes with the sensor faulty at the rate (planner_ceiling.py --noise;
+    `library`: its library arguments, default the row's); at rate 0 the table's own planner run."""
     from reproduce_table1 import PLANNER_LIBRARY, plan_and_test
 
     if rate == 0:
@@ -187,7 +188,7 @@ def plan_under_noise(seed: int, rate: float, test_episodes: int, out: Path) -> d
         run = json.loads(path.read_text())
         return {k: run[k] for k in ("command", "train_wall_s", "test_fingerprint", "commit", "hardware")} | {
             "accuracy_per_probe": run["accuracy"], "accuracy": run["accuracy"][-1]}  # where and when it ran
-    facts = plan_and_test(PLANNER_LIBRARY, seed, test_episodes, ("--noise", str(rate)))
+    facts = plan_and_test(library or PLANNER_LIBRARY, seed, test_episodes, ("--noise", str(rate)))
     return {"accuracy": facts["accuracy"][-1], "accuracy_per_probe": facts["accuracy"],
             **{k: facts[k] for k in ("command", "train_wall_s", "test_fingerprint")}}
 

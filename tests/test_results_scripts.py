@@ -527,6 +527,21 @@ def test_noise_merge_adds_the_namer_alone_beside_ours(tmp_path):
     assert "ours, its namer alone: namer_row" in (tmp_path / "noise.md").read_text()
 
 
+def test_planner_under_noise_plans_with_faults_and_reuses_the_table_run_at_rate_0(tmp_path):
+    noise = script("reproduce_noise")
+    with pytest.raises(FileNotFoundError, match="planner-seed0.json: no table run of the planner"):
+        noise.plan_under_noise(0, 0.0, 16, tmp_path)
+    fake_run(tmp_path, "planner", 0, [0.4] * 9 + [0.98])
+    record = json.loads((tmp_path / "runs" / "planner-seed0.json").read_text())
+    (tmp_path / "runs" / "planner-seed0.json").write_text(json.dumps(record | {"command": "scripts/planner_ceiling.py"}))
+    reused = noise.plan_under_noise(0, 0.0, 16, tmp_path)
+    assert reused["accuracy"] == 0.98 and reused["commit"] == "abc1234"  # the table run's, not this commit
+    tiny = ("--library-split", "train", "--library", "128")
+    faulty = noise.plan_under_noise(0, 0.5, 16, tmp_path, library=tiny)
+    assert faulty["command"].endswith("--seed 0 --noise 0.5") and len(faulty["accuracy_per_probe"]) == 10
+    assert faulty["accuracy"] == faulty["accuracy_per_probe"][-1] and 0 <= faulty["accuracy"] <= 1
+
+
 def test_noise_ceiling_reads_the_same_probes_with_faults_dropped_and_without_faults(tmp_path):
     """At rate 1 every reading is corrupted: the script counts them all, and the namer told which readings are
     faulty has nothing left to read, so its accuracy never moves from the first probe's."""
