@@ -149,15 +149,17 @@ def summary(chosen: np.ndarray, named: np.ndarray, labels: np.ndarray, query: np
             "places": round(float(np.mean([len(set(requests[i, :, 0])) for i in range(len(requests))])), 2)}
 
 
-def save_rollouts(path: Path, labels: np.ndarray, poses: np.ndarray, requests: np.ndarray, meta: dict) -> None:
-    """Write the planner's episodes, (E,) classes, (E, P) poses and (E, N, 4) requests, with `meta` (the run's
-    arguments and summary, the objects, the pose regions' seed and the commit) as JSON, in one atomic write."""
+def save_rollouts(path: Path, labels: np.ndarray, poses: np.ndarray, requests: np.ndarray, meta: dict,
+                  faults: np.ndarray | None = None) -> None:
+    """Write the planner's episodes, (E,) classes, (E, P) poses and (E, N, 4) requests, and under noise the (E, N, 2)
+    fault uniforms its probes read with (ProbeSimulator.probe), with `meta` (the run's arguments and summary, the
+    objects, the pose regions' seed and the commit) as JSON, in one atomic write."""
     import io
     meta = {k: str(v) if isinstance(v, Path) else v for k, v in meta.items()}
     meta |= {"objects": "hg4", "eval_seed": 0, "commit": commit(("hg", "scripts"))}
     buffer = io.BytesIO()
     np.savez_compressed(buffer, labels=labels, poses=poses, requests=requests.astype(np.float32),
-                        meta=np.array(json.dumps(meta)))
+                        meta=np.array(json.dumps(meta)), **({} if faults is None else {"faults": faults}))
     write_atomic(path, buffer.getvalue())
 
 
@@ -204,9 +206,6 @@ def main() -> None:
         parser.error("--sigma and --bin must be > 0, --mismatch in (0, 1)")
     if not 0 <= args.noise < 1:
         parser.error(f"--noise {args.noise}: must be in [0, 1)")
-    if args.noise and args.save_rollouts:
-        parser.error("--save-rollouts with --noise: a teacher's file holds no fault draws, so its choices could not "
-                     "be replayed")
     candidates = candidate_requests(args.places, args.span, args.leans)
     if args.n_probes > len(candidates):
         parser.error(f"--n-probes {args.n_probes}: more than the {len(candidates)} candidates")
@@ -231,8 +230,10 @@ def main() -> None:
     with ProbeSimulator("hg4", batch_size=256 if args.mode == "arm" else 1024, mode=args.mode, noise=noise,
                         seed=args.seed) as probe:  # in arm mode its achieved probes stray from the requested ones
         query = readings(probe, query_labels, query_poses, candidates, clean=True)
-        faulty = (torch.from_numpy(np.stack([readings(probe, query_labels, query_poses, candidates)
-                                             for _ in range(args.n_probes)])) if args.noise else None)
+        # the faults of each episode's probe k, drawn up front so that a teacher file can replay them (model.imitate)
+        faults = np.random.default_rng(args.seed + 2).random((len(query), args.n_probes, 2)) if args.noise else None
+        faulty = (torch.from_numpy(np.stack([readings(probe, query_labels, query_poses, candidates, faults=faults[:, k])
+                                             for k in range(args.n_probes)])) if args.noise else None)
     print(f"{len(candidates)} candidates x {args.library} {args.library_split} library episodes "
           f"({len(library)} with their shifts and mirror images), "
           f"{args.episodes} {args.split} episodes ({args.mode} mode): probed in {time.time() - start:.0f} s", flush=True)
@@ -252,7 +253,8 @@ def main() -> None:
                            noise, sim.scene.probe_length) for i in range(0, len(query), CHUNK))))
         r = results[name] = summary(chosen, named, query_labels, query, candidates, offsets, sim)
         if name == "planner" and args.save_rollouts:
-            save_rollouts(args.save_rollouts, query_labels, query_poses, candidates[chosen], vars(args) | {"summary": r})
+            save_rollouts(args.save_rollouts, query_labels, query_poses, candidates[chosen], vars(args) | {"summary": r},
+                          faults)
         print(f"{name}: accuracy after each probe " + " ".join(f"{a:.3f}" for a in r["accuracy"])
               + f"; {r['touches']:.2f} touches ({r['touches_first_half']:.2f} in the first half), tilt "
               f"{r['tilt_deg']:.1f} deg, {r['places']:.1f} places ({time.time() - start:.0f} s)", flush=True)

@@ -20,7 +20,7 @@ from hg.lightning.module import Rollout, relative_to_first_touch
 from hg.nets import reflect
 from hg.sim.library import MISS, readings
 from hg.sim.scene import Scene
-from hg.sim.simulator import ProbeSimulator
+from hg.sim.simulator import ProbeSimulator, SensorNoise
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = str(ROOT / "configs" / "tiny.yaml")
@@ -149,6 +149,47 @@ def test_imitation_warmup_probes_where_the_teacher_chose_and_copies_its_requests
     assert "loss_policy" not in terms
     torch.testing.assert_close(terms["loss"], terms["loss_ce"] + terms["loss_imitation"])
     model.sim.close()
+
+
+def test_a_teacher_planned_under_faults_is_replayed_with_its_faults_and_copied_by_a_choice_that_may_repeat(
+        teacher, tmp_path):
+    """Under sensor faults (planner_ceiling.py --noise) the teacher file holds the fault uniforms its planner read
+    with: its episodes replay them whatever the batch seed, so the copy reads what the planner read; the choice may
+    probe a candidate again (model.choice_repeats), and reads a repeated one by counts and mean depth. A teacher of
+    another sensor than the run's is refused."""
+    noisy = tmp_path / "noisy.npz"
+    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "planner_ceiling.py"), "--library-split", "train",
+                           "--split", "train", "--library", "256", "--episodes", "32", "--n-probes", "4",
+                           "--noise", "0.3", "--save-rollouts", str(noisy)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    noise = SensorNoise(miss_prob=0.3, false_contact_prob=0.3)
+    data = ProbeDataModule(mode="ideal", batch_size=8, eval_batch_size=8, val_episodes=8, test_episodes=8, n_probes=4,
+                           noise=noise)
+    model = make_model(data, policy_warmup_steps=3, imitate=(str(noisy),), location="candidates",
+                       choice_reads_probes=True, choice_reads_state=False, choice_repeats=True)
+    trainer = pl.Trainer(max_steps=3, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                         enable_model_summary=False, limit_val_batches=0, accelerator="cpu")
+    trainer.fit(model, datamodule=data)
+    episodes = model.teacher
+    assert episodes["faults"].shape == (32, 4, 2)
+    model.sim = data.make_simulator()
+    labels, poses, requests, faults = (episodes[k][:8] for k in ("labels", "poses", "requests", "faults"))
+    replays = [model.rollout(labels, poses, seed, requests=requests, faults=faults).points for seed in (0, 1)]
+    torch.testing.assert_close(replays[0], replays[1])  # the teacher's faults, not the batch seed's
+    drawn = [model.rollout(labels, poses, seed, requests=requests).points[..., 3] for seed in range(4)]
+    assert any(not torch.equal(d, drawn[0]) for d in drawn[1:])  # without them the seed draws the faults
+    assert model.policy_extra(requests, replays[0])[1] is None  # no candidate is barred
+    again = torch.cat([requests[:1, :1]] * 2, 1)  # one candidate twice: a touch 0.2 deep, then a miss
+    features, probed = model.location.readings(again, torch.tensor([[[0.0, 0.0, -0.2, 1.0], [0.0, 0.0, -1.0, 0.0]]]), 4)
+    c, n = model.location.index_of(again[0, 0]), len(model.location.candidates)
+    assert features[0, 1, [c, n + c, 2 * n + c]].tolist() == pytest.approx([2.0, 1.0, 0.2]) and probed[0, 1, c]
+    model.sim.close()
+    for imitate, run in ((noisy, ProbeDataModule(mode="ideal", batch_size=8, n_probes=4)), (teacher, data)):
+        refused = make_model(run, policy_warmup_steps=2, imitate=(str(imitate),), location="candidates")
+        with pytest.raises(ValueError, match=f"{imitate}: planned with sensor faults at rate 0.(3|0)"):
+            trainer.fit(refused, datamodule=run)
+    with pytest.raises(ValueError, match="model.choice_repeats=true .* model.choice_reads_probes: true"):
+        HapticGlance(location="candidates", choice_repeats=True)
 
 
 def test_candidate_policy_acts_among_its_candidates_in_the_view_it_read_and_learns_by_reinforce(data):

@@ -118,6 +118,19 @@ def test_noise_flips_contacts():
     sim.reset(np.full(64, 3), np.repeat(at(), 64, axis=0))
     result = sim.probe(np.repeat(DOWN, 64, axis=0))
     np.testing.assert_array_equal(result.clean_points, result.points)  # no faults: the sensor is the clean one
+    # given faults replace the sensor's draws: the same uniforms, the same faults, whatever its random state
+    sim.noise = SensorNoise(miss_prob=0.5, false_contact_prob=0.5)
+    faults = np.column_stack([np.linspace(0, 0.99, 64), np.full(64, 0.25)])
+    sim.reset(np.full(64, 3), np.repeat(at(), 64, axis=0), seed=1)  # misses: false touches where column 0 < 0.5
+    first = sim.probe(np.repeat(DOWN, 64, axis=0), faults).points
+    sim.reset(np.full(64, 3), np.repeat(at(), 64, axis=0), seed=2)
+    np.testing.assert_array_equal(sim.probe(np.repeat(DOWN, 64, axis=0), faults).points, first)
+    assert (first[:, 3] == (faults[:, 0] < 0.5)).all()
+    np.testing.assert_allclose(first[first[:, 3] == 1, 2], -0.25 * sim.scene.probe_length, atol=1e-9)
+    sim.reset(np.full(64, 1), np.repeat(at(), 64, axis=0))  # touches: missed where column 0 < 0.5
+    assert (sim.probe(np.repeat(DOWN, 64, axis=0), faults).points[:, 3] == (faults[:, 0] >= 0.5)).all()
+    with pytest.raises(ValueError, match=r"faults: expected shape \(64, 2\) with values in \[0, 1\)"):
+        sim.probe(np.repeat(DOWN, 64, axis=0), np.ones((64, 2)))
 
 
 def test_folder_object_set(tmp_path):

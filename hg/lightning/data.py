@@ -29,11 +29,14 @@ def episode_batch(regions: PoseRegions, split: str, size: int, n_classes: int, s
             "seed": torch.tensor(int(rng.integers(2 ** 31)))}
 
 
-def load_teacher(paths: list[str], regions: PoseRegions, objects: str, n_probes: int) -> Batch:
+def load_teacher(paths: list[str], regions: PoseRegions, objects: str, n_probes: int,
+                 noise: SensorNoise = SensorNoise()) -> Batch:
     """A teacher's episodes for a policy to copy (model.imitate): the classes, poses and requests of the files that
-    `scripts/planner_ceiling.py --save-rollouts` writes, concatenated. Refuses a file made for other objects, another
-    probe count, or other pose regions, and any episode whose pose lies outside the training region: a teacher's
-    episodes are training data, and held-out poses must not leak into them."""
+    `scripts/planner_ceiling.py --save-rollouts` writes, concatenated, and the (E, N, 2) faults its probes read with
+    ("faults", ProbeSimulator.probe; None without noise). Refuses a file made for other objects, another probe count,
+    other pose regions or another sensor (`noise`: a teacher that read other faults chose for readings the copy never
+    sees), and any episode whose pose lies outside the training region: a teacher's episodes are training data, and
+    held-out poses must not leak into them."""
     parts = []
     for path in paths:
         if not Path(path).is_file():
@@ -44,18 +47,28 @@ def load_teacher(paths: list[str], regions: PoseRegions, objects: str, n_probes:
             if missing:
                 raise ValueError(f"model.imitate: {path}: not a teacher file, no {sorted(missing)}")
             labels, poses, requests, meta = f["labels"], f["poses"], f["requests"], json.loads(str(f["meta"]))
+            faults = f["faults"] if "faults" in f.files else None
         for field, want in (("objects", objects), ("eval_seed", regions.seed)):
             if meta.get(field) != want:
                 raise ValueError(f"model.imitate: {path}: meta {field}={meta.get(field)!r}, this run has {want!r}")
+        rate = meta.get("noise", 0.0)  # planner_ceiling.py --noise: miss and false-contact probabilities both
+        if (noise.miss_prob, noise.false_contact_prob, noise.position_std) != (rate, rate, 0.0):
+            raise ValueError(f"model.imitate: {path}: planned with sensor faults at rate {rate} (miss_prob = "
+                             f"false_contact_prob), this run's data.noise is {noise}: write a teacher with "
+                             "scripts/planner_ceiling.py --noise at the run's rate")
+        if rate and (faults is None or faults.shape != requests.shape[:2] + (2,)):
+            raise ValueError(f"model.imitate: {path}: planned under noise without its faults of shape "
+                             f"{requests.shape[:2] + (2,)}")
         if requests.ndim != 3 or requests.shape[1:] != (n_probes, 4) or not len(labels) == len(poses) == len(requests):
             raise ValueError(f"model.imitate: {path}: requests of shape {requests.shape} for {len(labels)} episodes, "
                              f"expected ({len(labels)}, {n_probes}, 4) (data.n_probes={n_probes})")
         if (outside := int((regions.split_of(poses) != SPLITS.index("train")).sum())):
             raise ValueError(f"model.imitate: {path}: {outside} of {len(poses)} poses lie outside the training region")
-        parts.append((labels, poses, requests))
-    labels, poses, requests = (np.concatenate(x) for x in zip(*parts))
+        parts.append((labels, poses, requests, faults if rate else np.zeros(requests.shape[:2] + (2,))))
+    labels, poses, requests, faults = (np.concatenate(x) for x in zip(*parts))
     return {"labels": torch.from_numpy(labels).long(), "poses": torch.from_numpy(poses),
-            "requests": torch.from_numpy(requests).float()}
+            "requests": torch.from_numpy(requests).float(),
+            "faults": torch.from_numpy(faults) if noise.miss_prob else None}  # every file's rate is the run's
 
 
 def teacher_meta(paths: list[str]) -> dict:

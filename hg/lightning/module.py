@@ -143,7 +143,8 @@ class HapticGlance(pl.LightningModule):
                  candidate_span: float = 0.5, candidate_leans: tuple[float, ...] = (0.6, 1.0, 2.0),
                  choice_reads_probes: bool = False, choice_along_line: bool = False,
                  choice_reads_state: bool = True, random_probe_share: float = 0.0,
-                 along_line_classifier: bool = False, library_namer: str | None = None) -> None:
+                 along_line_classifier: bool = False, library_namer: str | None = None,
+                 choice_repeats: bool = False) -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -224,6 +225,11 @@ class HapticGlance(pl.LightningModule):
         if choice_along_line and not choice_reads_probes:
             raise ValueError("model.choice_along_line=true convolves the readings by candidate along the line, so it "
                              "needs model.choice_reads_probes: true")
+        # beyond the paper: under sensor faults a candidate probed again can outvote a corrupted first reading (the
+        # planner under noise re-probes, scripts/planner_ceiling.py --noise); without faults it would read the same
+        if choice_repeats and not choice_reads_probes:
+            raise ValueError("model.choice_repeats=true lifts the choice's ban on a candidate probed already, which only "
+                             "model.choice_reads_probes: true sets")
         # beyond the paper: `candidates`, a choice among fixed requests (the greedy planner's: candidate_places
         # along the middle candidate_span of the line, each straight or leaning to +-x by each of candidate_leans)
         if location == "gaussian":
@@ -371,7 +377,7 @@ class HapticGlance(pl.LightningModule):
             self.sim = data.make_simulator()
         if self.hparams.imitate and stage == "fit" and self.teacher is None:
             self.teacher = load_teacher(list(self.hparams.imitate), data.regions, data.object_set.name,
-                                        self.hparams.n_probes)
+                                        self.hparams.n_probes, data.noise)
             if isinstance(self.location, CandidateLocationNetwork):  # a choice can copy only its own candidates
                 try:
                     self.location.index_of(self.teacher["requests"])
@@ -466,7 +472,7 @@ class HapticGlance(pl.LightningModule):
                 readings = self.location.readings(actions.to(self.device), points.to(self.device), h.n_probes)
             readings, exclude = readings
             features.append(readings[:, -1:] if last_only else readings)
-            exclude = exclude[:, -1:] if last_only else exclude
+            exclude = None if h.choice_repeats else exclude[:, -1:] if last_only else exclude
         return (torch.cat(features, -1) if features else None), exclude
 
     def prior_offsets(self, points: Tensor) -> Tensor | None:
@@ -617,11 +623,11 @@ class HapticGlance(pl.LightningModule):
 
     @torch.no_grad()
     def rollout(self, labels: Tensor, poses: Tensor, seed: int, deterministic: bool | Tensor = False,
-                follow_scan: bool = False, requests: Tensor | None = None) -> Rollout:
+                follow_scan: bool = False, requests: Tensor | None = None, faults: Tensor | None = None) -> Rollout:
         """Probe B episodes N times with the current policy (or the fixed scan: follow_scan, or the given (B, N, 4)
         requests: a teacher's, or some episodes' with the others' rows NaN, left to the policy); the batch seed
-        drives sampling and sensor noise. deterministic: the mean action, in every episode or in the (B,) True
-        ones."""
+        drives sampling and sensor noise, or the sensor's faults are the given (B, N, 2) uniforms (a teacher's,
+        ProbeSimulator.probe). deterministic: the mean action, in every episode or in the (B,) True ones."""
         sim, n = self.sim, self.hparams.n_probes
         batch = len(labels)
         sim.reset(labels.cpu().numpy(), poses.cpu().numpy(), seed=seed)
@@ -641,7 +647,7 @@ class HapticGlance(pl.LightningModule):
                 raise FloatingPointError(f"non-finite probe request from the '{self.hparams.policy}' policy at probe "
                                          f"{k + 1}, global step {self.global_step}")
             actions[:, k] = action
-            result = sim.probe(action.clamp(-1, 1).double().numpy())
+            result = sim.probe(action.clamp(-1, 1).double().numpy(), None if faults is None else faults[:, k].numpy())
             points[:, k] = torch.from_numpy(result.points).float()
             points[:, k, :3] *= self.hparams.point_scale  # the policy must see what evaluate() will see
             if sim.arm is not None:
@@ -769,7 +775,7 @@ class HapticGlance(pl.LightningModule):
         if self.hparams.policy == "learned" and not warming_up and self.hparams.mean_action_share:
             n_mean = min(round(self.hparams.mean_action_share * len(labels)), len(labels) - 1)  # >= 1 sampled
             mean_rows = torch.arange(len(labels)) < n_mean
-        poses, requests, learn_policy = batch["poses"], None, not warming_up
+        poses, requests, faults, learn_policy = batch["poses"], None, None, not warming_up
         # beyond the paper: a share of the episodes probed with distinct candidates drawn at random trains the
         # classifiers only, so that they also read probes their policy rarely sends (as it may on held-out poses)
         random_rows = None
@@ -780,9 +786,11 @@ class HapticGlance(pl.LightningModule):
         if warming_up and self.teacher is not None:  # the teacher's episodes in turn, with the requests it chose
             rows = (self.global_step * len(labels) + torch.arange(len(labels))) % len(self.teacher["labels"])
             labels, poses, requests = (self.teacher[k][rows].to(labels.device) for k in ("labels", "poses", "requests"))
+            faults = None if self.teacher["faults"] is None else self.teacher["faults"][rows]  # what it read under noise
             learn_policy = "imitate"
         rollout = self.rollout(labels, poses, int(batch["seed"]), follow_scan=warming_up and requests is None,
-                               deterministic=False if mean_rows is None else mean_rows, requests=requests)
+                               deterministic=False if mean_rows is None else mean_rows, requests=requests,
+                               faults=faults)
         held = [rows for rows in (mean_rows, random_rows) if rows is not None]  # episodes not training the policy
         terms, _ = self.evaluate(rollout, labels, learn_policy=learn_policy,
                                  sampled=~torch.stack(held).any(0).to(labels.device) if held else None)

@@ -225,16 +225,17 @@ class CandidateLocationNetwork(PolicyState):
         """What the probes so far read, by candidate (beyond the paper: scripts/copy_planner.py's state, from which
         it copies the greedy planner, with the touch's depth in place of its distance along the ray). actions
         (B, K, 4) candidates and the points (B, K, 4) they returned (X, Y, Z, T) -> row j, after probes 1..j + 1:
-        features (B, K, 3C + n_probes), for every candidate whether it was probed, whether it touched and how deep
-        (-Z), then the next probe's index one-hot; and the probed candidates (B, K, C) bool."""
+        features (B, K, 3C + n_probes), for every candidate how often it was probed, how often it touched and how
+        deep on average (-Z), then the next probe's index one-hot (a candidate probed once: 0/1 flags and its
+        depth; counts where a choice may probe again, model.choice_repeats); and the probed candidates (B, K, C)
+        bool."""
         chosen = F.one_hot(self.index_of(actions), len(self.candidates)).float()  # (B, K, C)
         touched = chosen * (points[..., 3:] > 0.5).float()
-        probed = chosen.cumsum(1) > 0
-        depth = (touched * -points[..., 2:3]).cummax(1).values
+        probes, touches = chosen.cumsum(1), touched.cumsum(1)
+        depth = (touched * -points[..., 2:3]).cumsum(1) / touches.clamp(min=1)
         step = F.one_hot(torch.arange(1, actions.shape[1] + 1).clamp(max=n_probes - 1), n_probes).float()
-        features = torch.cat([probed.float(), (touched.cumsum(1) > 0).float(), depth,
-                              step.to(actions.device).expand(len(actions), -1, -1)], -1)
-        return features, probed
+        features = torch.cat([probes, touches, depth, step.to(actions.device).expand(len(actions), -1, -1)], -1)
+        return features, probes > 0
 
     def moments(self, log_probs: Tensor) -> tuple[Tensor, Tensor]:
         """The request's mean and std per component under the choice, (..., 4) each."""

@@ -16,16 +16,17 @@ MISS = -1.0  # the reading of a probe that touched nothing
 
 
 def readings(sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray, candidates: np.ndarray,
-             clean: bool = False) -> np.ndarray:
+             clean: bool = False, faults: np.ndarray | None = None) -> np.ndarray:
     """(E, C) float32: how far along each candidate's ray the probe touched the episode's object (m), MISS if not;
     episodes in batches of the simulator's size, every candidate for each batch. As the sensor read it (its faults
-    drawn anew at every call), or with `clean` what a fault-free sensor read."""
+    drawn anew at every call, or each episode's given by `faults` (E, 2), ProbeSimulator.probe), or with `clean`
+    what a fault-free sensor read."""
     out = np.empty((len(labels), len(candidates)), dtype=np.float32)
     for start in range(0, len(labels), sim.batch_size):
         end = min(start + sim.batch_size, len(labels))
         sim.reset(labels[start:end], poses[start:end])
         for c, request in enumerate(candidates):
-            result = sim.probe(np.repeat(request[None], end - start, 0))
+            result = sim.probe(np.repeat(request[None], end - start, 0), None if faults is None else faults[start:end])
             points = result.clean_points if clean else result.points
             distance = np.linalg.norm(points[:, :3] - result.entry, axis=1)
             out[start:end, c] = np.where(points[:, 3] > 0.5, distance, MISS)

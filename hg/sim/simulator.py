@@ -156,14 +156,19 @@ class ProbeSimulator:
                      quaternions(poses[:, 3:]).tolist())
         return bodies, moves
 
-    def probe(self, requests: np.ndarray) -> ProbeResult:
-        """Probe every episode once; requests (n, 4) in [-1, 1], one row per episode of the last reset."""
+    def probe(self, requests: np.ndarray, faults: np.ndarray | None = None) -> ProbeResult:
+        """Probe every episode once; requests (n, 4) in [-1, 1], one row per episode of the last reset. faults
+        (n, 2) in [0, 1): the sensor's contact faults as given uniforms instead of its own draws (column 0 below
+        miss_prob corrupts a touch, below false_contact_prob a miss; column 1 is where along the ray a false touch
+        lies), so that a teacher's episodes replay the faults its planner read (model.imitate under noise)."""
         n = len(self.labels)
         requests = np.asarray(requests, dtype=np.float64)
         if n == 0:
             raise RuntimeError("probe() before reset(): no objects are placed")
         if requests.shape != (n, 4):
             raise ValueError(f"requests: expected shape ({n}, 4) for the {n} episodes of the last reset, got {requests.shape}")
+        if faults is not None and (np.shape(faults) != (n, 2) or not ((faults >= 0) & (faults < 1)).all()):
+            raise ValueError(f"faults: expected shape ({n}, 2) with values in [0, 1), got {np.shape(faults)}")
         entry, direction = self.scene.request_to_probe(requests)
         if self.arm is None:
             start, axis, error = entry, direction, np.zeros((n, 2))
@@ -177,20 +182,22 @@ class ProbeSimulator:
         points[hit, :3] = position[hit] - offset[hit]
         points[:, 3] = hit
         clean = points.copy()
-        self._apply_noise(points, start, end, hit)
+        self._apply_noise(points, start, end, hit, faults)
         return ProbeResult(points, entry, direction, error, clean)
 
-    def _apply_noise(self, points: np.ndarray, start: np.ndarray, end: np.ndarray, hit: np.ndarray) -> None:
-        """Sensor faults in place: a missed contact reports the ray's end, a false one a point along the ray."""
+    def _apply_noise(self, points: np.ndarray, start: np.ndarray, end: np.ndarray, hit: np.ndarray,
+                     faults: np.ndarray | None = None) -> None:
+        """Sensor faults in place: a missed contact reports the ray's end, a false one a point along the ray
+        (drawn here, or decided by the given `faults` uniforms, probe())."""
         noise, n = self.noise, len(points)
         if noise.position_std > 0:
             points[hit, :3] += self.rng.normal(0.0, noise.position_std, (int(hit.sum()), 3))
         if noise.miss_prob > 0:
-            missed = hit & (self.rng.random(n) < noise.miss_prob)
+            missed = hit & ((self.rng.random(n) if faults is None else faults[:, 0]) < noise.miss_prob)
             points[missed] = np.column_stack([end[missed], np.zeros(int(missed.sum()))])
         if noise.false_contact_prob > 0:
-            false = ~hit & (self.rng.random(n) < noise.false_contact_prob)
-            along = self.rng.random((int(false.sum()), 1))
+            false = ~hit & ((self.rng.random(n) if faults is None else faults[:, 0]) < noise.false_contact_prob)
+            along = self.rng.random((int(false.sum()), 1)) if faults is None else faults[false, 1:]
             points[false] = np.column_stack([start[false] + along * (end[false] - start[false]), np.ones(int(false.sum()))])
 
     def close(self) -> None:
