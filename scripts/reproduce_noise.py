@@ -193,25 +193,66 @@ def plan_under_noise(seed: int, rate: float, test_episodes: int, out: Path, libr
             **{k: facts[k] for k in ("command", "train_wall_s", "test_fingerprint")}}
 
 
+def noise_teachers(patterns: list[str] | None, config_teachers: list[str], rate: float) -> list[str]:
+    """The teacher files planned at `rate` for a row that copies a planner (model.imitate): `patterns` with {pct}
+    the rate in percent, by default each of the config's teachers as <stem>_noise{pct}.npz beside it. Refuses a
+    missing one, naming the command that writes it: a teacher planned without faults chose for readings the copy
+    would not see (hg.lightning.data.load_teacher)."""
+    pct = f"{round(rate * 100):02d}"
+    patterns = patterns or [str(Path(t).with_name(f"{Path(t).stem}_noise{{pct}}.npz")) for t in config_teachers]
+    teachers = [pattern.replace("{pct}", pct) for pattern in patterns]
+    for teacher in teachers:
+        if not (ROOT / teacher).is_file():
+            raise FileNotFoundError(
+                f"{teacher}: no teacher planned at rate {rate}; write one with scripts/planner_ceiling.py "
+                f"--library-split train --split train --library 32768 --shifts 5 --mirror --episodes 3072 --seed 10 "
+                f"--noise {rate} --save-rollouts {teacher}")
+    return teachers
+
+
 def train_under_noise(row: str, config: str, seed: int, rate: float, table_runs: dict[int, dict], runs_dir: Path,
-                      test_episodes: int, steps: int | None) -> dict:
+                      test_episodes: int, steps: int | None, teachers: list[str] | None = None) -> dict:
     """Our model trained at the rate it is tested at, as the point-cloud baselines are: the row's config with the
-    sensor noise on in training, validation and test. At rate 0 that is the table's own run of the row."""
+    sensor noise on in training, validation and test. At rate 0 that is the table's own run of the row. A row that
+    scores another's checkpoints (e.g. with model.library_namer) trains that row's config and scores its best
+    checkpoint as its own config reads it. A row that copies a planner copies one planned at the rate (its fault
+    draws replayed, noise_teachers(teachers)), and its choice may probe a candidate again (model.choice_repeats),
+    as that planner does."""
+    import yaml
+
+    from reproduce_table1 import ROWS, config_of
+
     if rate == 0:
         if seed not in table_runs:
             raise FileNotFoundError(f"docs/results/runs/{row}-seed{seed}.json: no table run of {row} with seed {seed} "
                                     "(rate 0 is the table's own run; train it with reproduce_table1.py)")
         run = table_runs[seed]
         return {"accuracy": run["accuracy"][-1], "accuracy_per_probe": run["accuracy"], "checkpoint":
-                run["best_checkpoint"], "best_val_acc": run["best_val_acc"], "train_wall_s": run["train_wall_s"]}
+                run["best_checkpoint"], "best_val_acc": run["best_val_acc"], "train_wall_s": run["train_wall_s"],
+                **({"accuracy_namer_alone_per_probe": run["accuracy_namer_alone"]} if "accuracy_namer_alone" in run
+                   else {})}
     from hg.lightning.experiment import fit_and_test
 
-    folder = runs_dir / f"ours_trained-{row}-rate{round(rate * 100):02d}-seed{seed}"
-    facts = fit_and_test(ROOT / config, seed, folder, eval_seed=EVAL_SEED, test_episodes=test_episodes, steps=steps,
-                         extra_args=noise_args(rate))
+    source = ROWS[row].scores if row in ROWS else None
+    trained = config_of(source) if source else config
+    model = yaml.safe_load((ROOT / trained).read_text()).get("model") or {}
+    extra = noise_args(rate)
+    if model.get("imitate"):
+        extra += ["--model.imitate", json.dumps(noise_teachers(teachers, model["imitate"], rate))]
+        if model.get("choice_reads_probes"):
+            extra += ["--model.choice_repeats", "true"]
+    folder = runs_dir / f"ours_trained-{source or row}-rate{round(rate * 100):02d}-seed{seed}"
+    facts = fit_and_test(ROOT / trained, seed, folder, eval_seed=EVAL_SEED, test_episodes=test_episodes, steps=steps,
+                         extra_args=extra)
+    train_facts = {k: facts[k] for k in ("best_val_acc", "train_wall_s", "max_steps", "resumed_from_step")}
+    if source:
+        facts = fit_and_test(ROOT / config, seed, folder.with_name(f"{folder.name}-scored"), eval_seed=EVAL_SEED,
+                             test_episodes=test_episodes, extra_args=extra, checkpoint=ROOT / facts["best_checkpoint"])
     return {"accuracy": facts["accuracy"][-1], "accuracy_per_probe": facts["accuracy"],
-            "checkpoint": facts["best_checkpoint"],
-            **{k: facts[k] for k in ("best_val_acc", "train_wall_s", "test_wall_s", "max_steps", "resumed_from_step")}}
+            "checkpoint": facts["best_checkpoint"], **train_facts, "test_wall_s": facts["test_wall_s"],
+            "command_args": extra,
+            **({"accuracy_namer_alone_per_probe": facts["accuracy_namer_alone"]} if "accuracy_namer_alone" in facts
+               else {})}
 
 
 # -- merge ------------------------------------------------------------------------------------------------
@@ -226,9 +267,11 @@ def merge(out: Path) -> dict:
         key = f"ours_trained-{run['row']}" if run["model"] == "ours_trained" else run["model"]
         runs.setdefault(key, {}).setdefault(run["rate"], []).append(run)
         if "accuracy_namer_alone_per_probe" in run:  # the same rollouts named by the row's library namer alone
-            runs.setdefault("ours_namer_alone", {}).setdefault(run["rate"], []).append(
+            alone, what = (("ours_namer_alone", "ours") if run["model"] == "ours" else
+                           (f"{key}-namer_alone", "ours trained at the rate"))
+            runs.setdefault(alone, {}).setdefault(run["rate"], []).append(
                 run | {"accuracy": run["accuracy_namer_alone_per_probe"][-1],
-                       "label": f"ours, its namer alone: {run['row']} after 10 probes"})
+                       "label": f"{what}, its namer alone: {run['row']} after 10 probes"})
     if not runs:
         raise SystemExit(f"{out / 'noise_runs'}: no finished runs to merge")
     summary = {}
@@ -317,6 +360,9 @@ def main() -> None:
     parser.add_argument("--trained-row", default=None,
                         help="table row that ours_trained trains at each rate (default: the best PCRN variant)")
     parser.add_argument("--ours-steps", type=int, default=None, help="override ours_trained's max_steps (smoke tests)")
+    parser.add_argument("--noise-teachers", nargs="+", default=None,
+                        help="ours_trained of a row copying a planner: its teacher files planned at each rate, {pct} "
+                             "the rate in percent (default: each of the row's teachers as <stem>_noise{pct}.npz)")
     parser.add_argument("--runs-dir", type=Path, default=ROOT / "runs" / "noise", help="ours_trained's checkpoints")
     parser.add_argument("--rates", nargs="+", type=float, default=list(RATES))
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2],
@@ -353,7 +399,7 @@ def main() -> None:
                 result["label"], result["row"] = f"ours: {row} after 10 probes", row
             elif model == "ours_trained":
                 result = train_under_noise(trained_row, trained_config, seed, rate, trained_runs, args.runs_dir,
-                                           test_episodes, args.ours_steps)
+                                           test_episodes, args.ours_steps, args.noise_teachers)
                 result["label"] = f"ours trained at the rate: {trained_row} after 10 probes"
                 result["row"] = trained_row
             elif model == "planner":

@@ -520,11 +520,27 @@ def test_noise_merge_adds_the_namer_alone_beside_ours(tmp_path):
                   "commit": "abc1234", "hardware": "test"}
         (tmp_path / "noise_runs" / f"ours-namer_row-rate{round(rate * 100):02d}-seed{seed}.json").write_text(
             json.dumps(record))
+    trained = {"model": "ours_trained", "row": "namer_row", "rate": 0.1, "seed": 0, "accuracy": 0.8,
+               "accuracy_namer_alone_per_probe": [0.3] * 9 + [0.9], "label": "ours trained at the rate: namer_row",
+               "commit": "abc1234", "hardware": "test"}
+    (tmp_path / "noise_runs" / "ours_trained-namer_row-rate10-seed0.json").write_text(json.dumps(trained))
     merged = run("reproduce_noise", "--merge-only", "--out", str(tmp_path))
     assert merged.returncode == 0, merged.stderr[-2000:]
     summary = json.loads(merged.stdout.strip().splitlines()[-1])
-    assert summary["ours"] == [0.95, 0.76] and summary["ours_namer_alone"] == [0.96, 0.85]
-    assert "ours, its namer alone: namer_row" in (tmp_path / "noise.md").read_text()
+    assert summary["ours"] == [0.95, 0.76] and summary["ours_namer_alone"] == [0.96, 0.85]  # ours' namer alone only
+    assert summary["ours_trained-namer_row"] == [0.8] and summary["ours_trained-namer_row-namer_alone"] == [0.9]
+    text = (tmp_path / "noise.md").read_text()
+    assert "ours, its namer alone: namer_row" in text and "ours trained at the rate, its namer alone: namer_row" in text
+
+
+def test_ours_trained_copying_a_planner_copies_one_planned_at_the_rate(tmp_path):
+    noise = script("reproduce_noise")
+    (tmp_path / "t_noise10.npz").write_bytes(b"")
+    assert noise.noise_teachers(None, [str(tmp_path / "t.npz")], 0.1) == [str(tmp_path / "t_noise10.npz")]
+    assert noise.noise_teachers([str(tmp_path / "t_noise{pct}.npz")], [], 0.1) == [str(tmp_path / "t_noise10.npz")]
+    with pytest.raises(FileNotFoundError, match=r"t_noise30.npz: no teacher planned at rate 0.3; write one with "
+                                                r"scripts/planner_ceiling.py .*--noise 0.3 --save-rollouts"):
+        noise.noise_teachers(None, [str(tmp_path / "t.npz")], 0.3)
 
 
 def test_planner_under_noise_plans_with_faults_and_reuses_the_table_run_at_rate_0(tmp_path):
