@@ -134,7 +134,8 @@ def fixed_sequence(sequence: np.ndarray) -> Callable[[int, torch.Tensor, torch.T
 def summary(chosen: np.ndarray, named: np.ndarray, labels: np.ndarray, query: np.ndarray, candidates: np.ndarray,
             offsets: np.ndarray, sim: ProbeSimulator) -> dict:
     """Accuracy after each probe, touches per episode (all, first half), mean tilt from vertical, the share of
-    leaning probes that lean towards the object's side, and distinct places per episode."""
+    leaning probes that lean towards the object's side, distinct places per episode, and probes per episode that
+    read a candidate again (under faults)."""
     touched = np.take_along_axis(query, chosen, 1) != MISS
     requests = candidates[chosen]
     direction = sim.scene.request_to_probe(requests.reshape(-1, 4))[1].reshape(*requests.shape[:2], 3)
@@ -146,7 +147,8 @@ def summary(chosen: np.ndarray, named: np.ndarray, labels: np.ndarray, query: np
             "touches_first_half": round(float(touched[:, :chosen.shape[1] // 2].sum(1).mean()), 3),
             "tilt_deg": round(float(tilt.mean()), 2),
             "leaning_towards_object": round(float(towards[leaning].mean()), 3) if leaning.any() else None,
-            "places": round(float(np.mean([len(set(requests[i, :, 0])) for i in range(len(requests))])), 2)}
+            "places": round(float(np.mean([len(set(requests[i, :, 0])) for i in range(len(requests))])), 2),
+            "repeats": round(float(np.mean([chosen.shape[1] - len(set(row)) for row in chosen.tolist()])), 3)}
 
 
 def save_rollouts(path: Path, labels: np.ndarray, poses: np.ndarray, requests: np.ndarray, meta: dict,

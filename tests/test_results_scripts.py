@@ -368,6 +368,7 @@ def test_planner_probes_where_the_reading_tells_the_class_and_runs_on_real_probe
     result = json.loads(real.stdout.strip().splitlines()[-1])
     assert result["candidates"] == 9 and len(result["planner"]["accuracy"]) == 3
     assert result["fixed"]["tilt_deg"] == 0 and result["fixed"]["places"] == 3  # straight, one probe per place
+    assert result["planner"]["repeats"] == result["fixed"]["repeats"] == 0  # without faults never a candidate twice
     assert all(0 <= a <= 1 for a in result["planner"]["accuracy"])
     noisy = run("planner_ceiling", "--episodes", "16", "--library", "2048", "--n-probes", "3", "--places", "3",
                 "--leans", "1.0", "--noise", "0.3")
