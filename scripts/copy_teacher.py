@@ -103,7 +103,7 @@ def main() -> None:
     model = HapticGlance.load_from_checkpoint(args.ckpt, map_location="cpu").eval()
     data = ProbeDataModule(mode="ideal", n_probes=model.hparams.n_probes, batch_size=256, eval_batch_size=256)
     episodes = load_teacher(args.teacher, data.regions, data.object_set.name, model.hparams.n_probes)
-    episodes = {k: v[:args.episodes] for k, v in episodes.items()}
+    episodes = {k: v[:args.episodes] for k, v in episodes.items() if v is not None}  # no faults: a noise-free teacher
     n = len(episodes["labels"])
     n_train = n - max(1, round(args.held_out * n))
     if n_train < 1:

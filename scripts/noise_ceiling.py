@@ -55,8 +55,8 @@ class SensorTap:
     def __getattr__(self, name: str):
         return getattr(self.sim, name)
 
-    def probe(self, requests: np.ndarray):
-        result = self.sim.probe(requests)
+    def probe(self, requests: np.ndarray, faults: np.ndarray | None = None):
+        result = self.sim.probe(requests, faults)
         self.faulty.append(result.points)
         self.clean.append(result.clean_points)
         return result if self.shown == "faulty" else dataclasses.replace(result, points=result.clean_points)
