@@ -204,9 +204,9 @@ def noise_teachers(patterns: list[str] | None, config_teachers: list[str], rate:
     for teacher in teachers:
         if not (ROOT / teacher).is_file():
             raise FileNotFoundError(
-                f"{teacher}: no teacher planned at rate {rate}; write one with scripts/planner_ceiling.py "
-                f"--library-split train --split train --library 32768 --shifts 5 --mirror --episodes 3072 --seed 10 "
-                f"--noise {rate} --save-rollouts {teacher}")
+                f"{teacher}: no teacher planned at rate {rate}; write one with scripts/planner_ceiling.py, the "
+                f"arguments of the noise-free teacher it stands for (its meta: library, shifts, mirror, episodes, seed) "
+                f"and --noise {rate} --save-rollouts {teacher}")
     return teachers
 
 
