@@ -540,7 +540,8 @@ def test_ours_trained_copying_a_planner_copies_one_planned_at_the_rate(tmp_path)
     assert noise.noise_teachers(None, [str(tmp_path / "t.npz")], 0.1) == [str(tmp_path / "t_noise10.npz")]
     assert noise.noise_teachers([str(tmp_path / "t_noise{pct}.npz")], [], 0.1) == [str(tmp_path / "t_noise10.npz")]
     with pytest.raises(FileNotFoundError, match=r"t_noise30.npz: no teacher planned at rate 0.3; write one with "
-                                                r"scripts/planner_ceiling.py .*--noise 0.3 --save-rollouts"):
+                                                r"scripts/planner_ceiling.py, the arguments of the noise-free "
+                                                r"teacher.*--noise 0.3 --save-rollouts"):
         noise.noise_teachers(None, [str(tmp_path / "t.npz")], 0.3)
 
 
