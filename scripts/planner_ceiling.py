@@ -232,10 +232,11 @@ def main() -> None:
     with ProbeSimulator("hg4", batch_size=256 if args.mode == "arm" else 1024, mode=args.mode, noise=noise,
                         seed=args.seed) as probe:  # in arm mode its achieved probes stray from the requested ones
         query = readings(probe, query_labels, query_poses, candidates, clean=True)
-        # the faults of each episode's probe k, drawn up front so that a teacher file can replay them (model.imitate)
-        faults = np.random.default_rng(args.seed + 2).random((len(query), args.n_probes, 2)) if args.noise else None
-        faulty = (torch.from_numpy(np.stack([readings(probe, query_labels, query_poses, candidates, faults=faults[:, k])
-                                             for k in range(args.n_probes)])) if args.noise else None)
+        faults = faulty = None
+        if args.noise:  # each episode's probe k's faults, drawn up front so that a teacher file can replay them
+            faults = np.random.default_rng(args.seed + 2).random((len(query), args.n_probes, 2))
+            faulty = torch.from_numpy(np.stack([readings(probe, query_labels, query_poses, candidates,
+                                                         faults=faults[:, k]) for k in range(args.n_probes)]))
     print(f"{len(candidates)} candidates x {args.library} {args.library_split} library episodes "
           f"({len(library)} with their shifts and mirror images), "
           f"{args.episodes} {args.split} episodes ({args.mode} mode): probed in {time.time() - start:.0f} s", flush=True)
@@ -262,8 +263,8 @@ def main() -> None:
               f"{r['tilt_deg']:.1f} deg, {r['places']:.1f} places ({time.time() - start:.0f} s)", flush=True)
     sim.close()
     print(json.dumps(results | {"library": args.library, "library_split": args.library_split,
-                                "shifts": args.shifts, "mirror": args.mirror, "library_episodes": len(library), "noise": args.noise,
-                                "episodes": args.episodes, "split": args.split, "mode": args.mode,
+                                "shifts": args.shifts, "mirror": args.mirror, "library_episodes": len(library),
+                                "noise": args.noise, "episodes": args.episodes, "split": args.split, "mode": args.mode,
                                 "table_episodes": args.table_episodes, "candidates": len(candidates)}))
 
 

@@ -64,11 +64,11 @@ def load_teacher(paths: list[str], regions: PoseRegions, objects: str, n_probes:
                              f"expected ({len(labels)}, {n_probes}, 4) (data.n_probes={n_probes})")
         if (outside := int((regions.split_of(poses) != SPLITS.index("train")).sum())):
             raise ValueError(f"model.imitate: {path}: {outside} of {len(poses)} poses lie outside the training region")
-        parts.append((labels, poses, requests, faults if rate else np.zeros(requests.shape[:2] + (2,))))
-    labels, poses, requests, faults = (np.concatenate(x) for x in zip(*parts))
-    return {"labels": torch.from_numpy(labels).long(), "poses": torch.from_numpy(poses),
-            "requests": torch.from_numpy(requests).float(),
-            "faults": torch.from_numpy(faults) if noise.miss_prob else None}  # every file's rate is the run's
+        parts.append((labels, poses, requests, faults))
+    labels, poses, requests, faults = zip(*parts)
+    return {"labels": torch.from_numpy(np.concatenate(labels)).long(), "poses": torch.from_numpy(np.concatenate(poses)),
+            "requests": torch.from_numpy(np.concatenate(requests)).float(),
+            "faults": torch.from_numpy(np.concatenate(faults)) if rate else None}  # every file's rate is the run's
 
 
 def teacher_meta(paths: list[str]) -> dict:
