@@ -18,6 +18,9 @@ enters it). `--fixed` scores the straight centre-out scan over the same places w
 planner against the scans' ceilings. The library is read in ideal mode; `--mode arm` probes the scored episodes with
 the arm, whose achieved probes stray from the requested ones (every candidate is read up front, as the arm would
 read the chosen one), and `--table-episodes` scores the very episodes the tables score. Minutes on one core.
+`--best-first-two` also scores the planner with its first two probes chosen by trying every pair on the library
+(binned readings, in-sample) for the fewest errors after two probes, the greedy planner's after: how much the
+greedy choice leaves on the table after 2 probes.
 
 `--save-rollouts FILE` keeps the planner's episodes (classes, poses, the requests it chose) as a teacher for a policy
 to copy (model.imitate, docs/training.md); the file records the splits and seeds, so a model can refuse a teacher
@@ -30,9 +33,11 @@ whose episodes are not training episodes.
     .venv/bin/python scripts/planner_ceiling.py --library-split train --split train --library 32768 --shifts 5 \
         --mirror --episodes 3072 --seed 10 --save-rollouts data/planner/train_s10.npz   # a teacher (model.imitate)
 
-Last line: JSON {"planner" [and "fixed"]: {"accuracy": [after probe 1, ..., N], "touches": .., "touches_first_half":
-.., "tilt_deg": .., "leaning_towards_object": .., "places": ..}, "library": .., "library_split": .., "shifts": ..,
-"mirror": .., "library_episodes": .., "episodes": .., "split": .., "mode": .., "table_episodes": .., "candidates": ..}.
+Last line: JSON {"planner" [and "fixed", "best_first_two"]: {"accuracy": [after probe 1, ..., N], "touches": ..,
+"touches_first_half": .., "tilt_deg": .., "leaning_towards_object": .., "places": .., "repeats": ..}, "library": ..,
+"library_split": .., "shifts": .., "mirror": .., "library_episodes": .., "noise": .., "episodes": .., "split": ..,
+"mode": .., "table_episodes": .., "candidates": .. [, "first_two_on_library": {"best" | "greedy": {"first":
+candidate, "accuracy": on the library after two probes}}]}.
 """
 from __future__ import annotations
 
