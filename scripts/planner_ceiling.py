@@ -18,6 +18,9 @@ enters it). `--fixed` scores the straight centre-out scan over the same places w
 planner against the scans' ceilings. The library is read in ideal mode; `--mode arm` probes the scored episodes with
 the arm, whose achieved probes stray from the requested ones (every candidate is read up front, as the arm would
 read the chosen one), and `--table-episodes` scores the very episodes the tables score. Minutes on one core.
+`--best-first-two` also scores the planner with its first two probes chosen by trying every pair on the library
+(binned readings, in-sample) for the fewest errors after two probes, the greedy planner's after: how much the
+greedy choice leaves on the table after 2 probes.
 
 `--save-rollouts FILE` keeps the planner's episodes (classes, poses, the requests it chose) as a teacher for a policy
 to copy (model.imitate, docs/training.md); the file records the splits and seeds, so a model can refuse a teacher
@@ -30,9 +33,11 @@ whose episodes are not training episodes.
     .venv/bin/python scripts/planner_ceiling.py --library-split train --split train --library 32768 --shifts 5 \
         --mirror --episodes 3072 --seed 10 --save-rollouts data/planner/train_s10.npz   # a teacher (model.imitate)
 
-Last line: JSON {"planner" [and "fixed"]: {"accuracy": [after probe 1, ..., N], "touches": .., "touches_first_half":
-.., "tilt_deg": .., "leaning_towards_object": .., "places": ..}, "library": .., "library_split": .., "shifts": ..,
-"mirror": .., "library_episodes": .., "episodes": .., "split": .., "mode": .., "table_episodes": .., "candidates": ..}.
+Last line: JSON {"planner" [and "fixed", "best_first_two"]: {"accuracy": [after probe 1, ..., N], "touches": ..,
+"touches_first_half": .., "tilt_deg": .., "leaning_towards_object": .., "places": .., "repeats": ..}, "library": ..,
+"library_split": .., "shifts": .., "mirror": .., "library_episodes": .., "noise": .., "episodes": .., "split": ..,
+"mode": .., "table_episodes": .., "candidates": .. [, "first_two_on_library": {"best" | "greedy": {"first":
+candidate, "accuracy": on the library after two probes}}]}.
 """
 from __future__ import annotations
 
@@ -92,14 +97,47 @@ def expected_entropy(cells: torch.Tensor, weights: torch.Tensor, n_bins: int, n_
     return (per_bin[..., 0] * entropy).sum(-1) / weights.sum(-1, keepdim=True)
 
 
+def reading_bins(readings: np.ndarray, width: float, n_bins: int) -> np.ndarray:
+    """The entropy's bin of each reading: 0 for a miss, then `width`-wide bins along the ray."""
+    return np.where(readings == MISS, 0, 1 + np.minimum(readings / width, n_bins - 2)).astype(np.int64)
+
+
+def best_first_two(bins: np.ndarray, labels: np.ndarray, n_bins: int, n_classes: int) -> dict:
+    """The first probe, and the second for each binned reading of the first, that name the library's own episodes
+    best after two probes (each (bin, bin) cell named by its commonest class), found by trying every pair: the
+    greedy planner's first two probes minimise the entropy left one probe ahead, not the error two ahead. Returns
+    both rules' first probe, (n_bins,) second probes and accuracy on the library (in-sample, so a ceiling)."""
+    n, n_candidates = bins.shape
+    found = {}
+    for first in range(n_candidates):
+        cell = ((bins[:, first, None] * n_candidates + np.arange(n_candidates)) * n_bins + bins) * n_classes
+        mass = np.bincount((cell + labels[:, None]).ravel(), minlength=n_bins * n_candidates * n_bins * n_classes
+                           ).reshape(n_bins, n_candidates, n_bins, n_classes).astype(np.float64)
+        correct = mass.max(-1).sum(-1)  # (first's bin, second): episodes named right
+        p = mass / mass.sum(-1, keepdims=True).clip(min=1)
+        entropy = -(mass * np.log(p.clip(min=1e-30))).sum((-2, -1))
+        correct[:, first], entropy[:, first] = -1, np.inf  # in ideal mode a repeated probe reads the same
+        first_mass = mass[:, 0].sum(1)  # (first's bin, class)
+        first_p = first_mass / first_mass.sum(-1, keepdims=True).clip(min=1)
+        for rule, second in (("best", correct.argmax(1)), ("greedy", entropy.argmin(1))):
+            accuracy = correct[np.arange(n_bins), second].sum() / n
+            found.setdefault(rule, []).append({
+                "first": first, "second": second, "accuracy": accuracy,
+                "entropy_first": -(first_mass * np.log(first_p.clip(min=1e-30))).sum() / n})
+    best = max(found["best"], key=lambda r: r["accuracy"])
+    greedy = min(found["greedy"], key=lambda r: r["entropy_first"])
+    return {"best": best, "greedy": greedy}
+
+
 def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tensor, labels: torch.Tensor,
                    n_probes: int, n_bins: int, n_classes: int, sigma: float, mismatch: float,
-                   choose: Callable[[int, torch.Tensor, torch.Tensor], torch.Tensor] | None = None,
+                   choose: Callable[[int, torch.Tensor, torch.Tensor], torch.Tensor | None] | None = None,
                    faulty: torch.Tensor | None = None, noise: SensorNoise = SensorNoise(), probe_length: float = 1.0
                    ) -> tuple[np.ndarray, np.ndarray]:
     """(Q, N) candidates probed in each episode (its readings of every candidate: `query`, (Q, C)) and the class
     named after each probe: the planner's choices, or those of `choose(k, used, query)` -> (Q,) candidate indices
-    (a fixed sequence, or a network copying the planner), used (Q, C) bool marking the candidates probed so far.
+    (a fixed sequence, or a network copying the planner; None: the planner's), used (Q, C) bool marking the
+    candidates probed so far.
     library: (C, L) readings. With a faulty sensor, `faulty` (N, Q, C) holds what probe k reads from each candidate
     (an independent draw of the sensor's faults per probe) and `noise` its fault rates: the library is weighed with
     the sensor's model (log_likelihood), and the planner may probe a candidate again, since a second reading can
@@ -110,9 +148,8 @@ def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tens
     rows, chosen, named = torch.arange(len(query)), [], []
     one_hot = torch.nn.functional.one_hot(labels, n_classes).float()
     for k in range(n_probes):
-        if choose is not None:
-            c = choose(k, used, query)
-        else:
+        c = None if choose is None else choose(k, used, query)
+        if c is None:
             score = expected_entropy(cells, weights, n_bins, n_classes, noise)
             if faulty is None:  # in ideal mode a repeated probe reads the same
                 score = score.masked_fill(used, math.inf)
@@ -129,6 +166,17 @@ def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tens
 def fixed_sequence(sequence: np.ndarray) -> Callable[[int, torch.Tensor, torch.Tensor], torch.Tensor]:
     """A `choose` for probe_episodes: candidate sequence[k] at probe k in every episode."""
     return lambda k, used, query: torch.full((len(query),), int(sequence[k]))
+
+
+def first_two(rule: dict, width: float, n_bins: int) -> Callable[[int, torch.Tensor, torch.Tensor], torch.Tensor | None]:
+    """A `choose` for probe_episodes: best_first_two's rule for the first two probes, the planner's after."""
+    def choose(k: int, used: torch.Tensor, query: torch.Tensor) -> torch.Tensor | None:
+        if k == 0:
+            return torch.full((len(query),), rule["first"])
+        if k == 1:
+            return torch.from_numpy(rule["second"][reading_bins(query[:, rule["first"]].numpy(), width, n_bins)])
+        return None
+    return choose
 
 
 def summary(chosen: np.ndarray, named: np.ndarray, labels: np.ndarray, query: np.ndarray, candidates: np.ndarray,
@@ -191,6 +239,9 @@ def main() -> None:
     parser.add_argument("--noise", type=float, default=0.0,
                         help="sensor fault rate of the scored episodes' probes: SensorNoise(miss_prob = false_contact_prob "
                              "= rate), as reproduce_noise.py; the planner weighs with the sensor's model and may re-probe")
+    parser.add_argument("--best-first-two", action="store_true",
+                        help="also score the planner with its first two probes chosen to name the library best after "
+                             "two (best_first_two), not greedily")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--save-rollouts", type=Path, help="write the planner's episodes here (.npz): a teacher")
     args = parser.parse_args()
@@ -208,6 +259,9 @@ def main() -> None:
         parser.error("--sigma and --bin must be > 0, --mismatch in (0, 1)")
     if not 0 <= args.noise < 1:
         parser.error(f"--noise {args.noise}: must be in [0, 1)")
+    if args.best_first_two and (args.noise or args.n_probes < 2):
+        parser.error("--best-first-two: needs --n-probes >= 2 and a fault-free sensor (no --noise); its rule for the "
+                     "second probe reads the first's clean reading")
     candidates = candidate_requests(args.places, args.span, args.leans)
     if args.n_probes > len(candidates):
         parser.error(f"--n-probes {args.n_probes}: more than the {len(candidates)} candidates")
@@ -241,13 +295,21 @@ def main() -> None:
           f"({len(library)} with their shifts and mirror images), "
           f"{args.episodes} {args.split} episodes ({args.mode} mode): probed in {time.time() - start:.0f} s", flush=True)
     n_bins = int(np.ceil(sim.scene.probe_length / args.bin)) + 2
-    bins = np.where(library == MISS, 0, 1 + np.minimum(library / args.bin, n_bins - 2)).astype(np.int64)
+    bins = reading_bins(library, args.bin, n_bins)
     cells = cell_matrix(bins, labels, n_bins, n_classes)
     library_t, labels_t, query_t = torch.from_numpy(library.T.copy()), torch.from_numpy(labels), torch.from_numpy(query)
     offsets = query_poses[:, 0] - sim.scene.probe_x
     order = np.argsort(np.abs(np.linspace(-args.span, args.span, args.places)), kind="stable")
     runs = {"planner": None} | ({"fixed": fixed_sequence(order * (1 + 2 * len(args.leans)))} if args.fixed else {})
     results = {}
+    if args.best_first_two:
+        start = time.time()
+        rules = best_first_two(bins, labels, n_bins, n_classes)
+        results["first_two_on_library"] = {name: {"first": int(r["first"]), "accuracy": round(float(r["accuracy"]), 4)}
+                                           for name, r in rules.items()}
+        print(f"first two probes named on the library: {results['first_two_on_library']} ({time.time() - start:.0f} s)",
+              flush=True)
+        runs["best_first_two"] = first_two(rules["best"], args.bin, n_bins)
     for name, choose in runs.items():
         start = time.time()
         chosen, named = map(np.concatenate, zip(*(

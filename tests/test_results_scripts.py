@@ -362,14 +362,30 @@ def test_planner_probes_where_the_reading_tells_the_class_and_runs_on_real_probe
     assert named.tolist() == [[0]]  # the fault read as the sensor's word without its model
     ll = planner.log_likelihood(torch.tensor([[0.2]]), torch.tensor([[0.2, 0.21, planner.MISS]]), 0.01, 1e-3)
     assert ll[0].tolist() == pytest.approx([0.0, -0.5, np.log(1e-3)], rel=1e-4)
+    # the first two probes chosen for the error two probes ahead: X names 60 % of the episodes outright (least
+    # entropy one probe ahead, the greedy pick) but leaves the rest to one more halving; Y then Z name every one
+    labels4 = torch.arange(400).remainder(4)
+    x = torch.where((torch.arange(400) // 4).remainder(5) < 3, 0.1 * (labels4 + 1), planner.MISS)
+    y, z = torch.where(labels4 < 2, 0.1, planner.MISS), torch.where(labels4.remainder(2) == 0, 0.1, planner.MISS)
+    bins4 = planner.reading_bins(torch.stack([x, y, z], 1).numpy(), 0.05, 12)
+    rules = planner.best_first_two(bins4, labels4.numpy(), 12, 4)
+    assert rules["greedy"]["first"] == 0 and rules["greedy"]["accuracy"] == pytest.approx(0.8)
+    assert rules["best"]["first"] in (1, 2) and rules["best"]["accuracy"] == pytest.approx(1.0)
+    cells4 = planner.cell_matrix(bins4, labels4.numpy(), 12, 4)
+    queries4 = torch.tensor([[planner.MISS, 0.1, 0.1], [0.4, planner.MISS, planner.MISS]])  # classes 0 and 3
+    chosen, named = planner.probe_episodes(queries4, torch.stack([x, y, z]), cells4, labels4, 2, 12, 4, 0.005, 1e-3,
+                                           planner.first_two(rules["best"], 0.05, 12))
+    assert sorted(chosen[0].tolist()) == sorted(chosen[1].tolist()) == [1, 2] and named[:, 1].tolist() == [0, 3]
     real = run("planner_ceiling", "--episodes", "16", "--library", "2048", "--n-probes", "3", "--places", "3",
-               "--leans", "1.0", "--fixed")
+               "--leans", "1.0", "--fixed", "--best-first-two")
     assert real.returncode == 0, real.stderr[-2000:]
     result = json.loads(real.stdout.strip().splitlines()[-1])
     assert result["candidates"] == 9 and len(result["planner"]["accuracy"]) == 3
     assert result["fixed"]["tilt_deg"] == 0 and result["fixed"]["places"] == 3  # straight, one probe per place
     assert result["planner"]["repeats"] == result["fixed"]["repeats"] == 0  # without faults never a candidate twice
     assert all(0 <= a <= 1 for a in result["planner"]["accuracy"])
+    assert len(result["best_first_two"]["accuracy"]) == 3 and result["first_two_on_library"]["best"]["accuracy"] >= \
+        result["first_two_on_library"]["greedy"]["accuracy"]
     noisy = run("planner_ceiling", "--episodes", "16", "--library", "2048", "--n-probes", "3", "--places", "3",
                 "--leans", "1.0", "--noise", "0.3")
     assert noisy.returncode == 0, noisy.stderr[-2000:]
@@ -379,6 +395,8 @@ def test_planner_probes_where_the_reading_tells_the_class_and_runs_on_real_probe
     assert bad.returncode != 0 and "--n-probes 10: more than the 1 candidates" in bad.stderr
     bad = run("planner_ceiling", "--noise", "1.0")
     assert bad.returncode != 0 and "--noise 1.0: must be in [0, 1)" in bad.stderr
+    bad = run("planner_ceiling", "--noise", "0.1", "--best-first-two")
+    assert bad.returncode != 0 and "--best-first-two: needs" in bad.stderr
 
 
 def test_planner_library_shifts_and_mirror_images_read_as_moved_and_mirrored_objects_do():
