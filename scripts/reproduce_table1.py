@@ -465,8 +465,9 @@ def markdown(table: dict[str, dict], runs: dict[str, list[dict]], merged_at: str
                      f"{', '.join(f'`{c}`' for c in table[r]['commits'])} | "
                      f"{'; '.join(table[r]['hardware'])} |")
     lines += ["", "With two jobs in parallel each trains on one torch thread.",
-              "A run resumed after an interruption counts only the wall time of its last attempt "
-              "(`resumed_from_step` in its JSON).", "", "## Targets (issue #4)", "", *targets(table), ""]
+              "A run resumed after an interruption counts every attempt's training time up to its last checkpoint "
+              "(`hg.lightning.callbacks.TrainingClock`, in the checkpoints since 2026-12-05); one resumed before "
+              "that counts only its last attempt (`resumed_from_step` in its JSON).", "", "## Targets (issue #4)", "", *targets(table), ""]
     return "\n".join(lines)
 
 

@@ -913,6 +913,13 @@ def test_scoring_a_checkpoint_trains_nothing_and_gives_what_its_run_gave(tmp_pat
     best = ROOT / trained["best_checkpoint"]  # (relative to the repository when inside it)
     scored = fit_and_test(Path(TINY), 0, tmp_path / "scored", checkpoint=best, **kwargs)
     assert trained["train_wall_s"] > 0 and scored["train_wall_s"] == 0.0
+    # run again in its folder: it resumes from last.ckpt at its last step, trains nothing more, and still reports
+    # the time its steps took (TrainingClock's total rides in the checkpoint), not the empty attempt's
+    again = fit_and_test(Path(TINY), 0, tmp_path / "trained", **kwargs)
+    assert again["resumed_from_step"] == trained["max_steps"] and again["accuracy"] == trained["accuracy"]
+    saved = torch.load(tmp_path / "trained" / "checkpoints" / "last.ckpt", weights_only=False)["callbacks"]
+    assert saved["TrainingClock"]["seconds"] == pytest.approx(trained["train_wall_s"], rel=0.2)
+    assert again["train_wall_s"] >= saved["TrainingClock"]["seconds"]
     assert not (tmp_path / "scored" / "checkpoints").exists()
     assert scored["accuracy"] == trained["accuracy"] and scored["best_val_acc"] == trained["best_val_acc"]
     assert scored["best_checkpoint"] == trained["best_checkpoint"]

@@ -1,9 +1,10 @@
-"""Callbacks: per-probe accuracy files and plots, the run configuration saved where the run lives, and a moving
-average of the weights."""
+"""Callbacks: per-probe accuracy files and plots, the run configuration saved where the run lives, a moving
+average of the weights, and a training clock that survives resuming."""
 from __future__ import annotations
 
 import csv
 import io
+import time
 from pathlib import Path
 
 import matplotlib
@@ -115,6 +116,34 @@ def accuracy_plot(curves: dict[str, list[float]], title: str = "Accuracy after e
     fig.savefig(buffer, format="png", bbox_inches="tight")
     plt.close(fig)
     return buffer.getvalue()
+
+
+class TrainingClock(pl.Callback):
+    """Training wall time summed over a run's attempts. Its total rides in every checkpoint, so a run resumed after
+    an interruption reports what its steps took, not only its last attempt (the time an interruption lost after the
+    last checkpoint is not counted: those steps were trained again)."""
+
+    def __init__(self) -> None:
+        self.seconds = 0.0  # earlier attempts, and this one once it has ended
+        self._start: float | None = None
+
+    @property
+    def elapsed(self) -> float:
+        return self.seconds + (time.time() - self._start if self._start is not None else 0.0)
+
+    def setup(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:
+        if stage == "fit":  # before a checkpoint's state is restored, which sets the earlier attempts' seconds
+            self.seconds, self._start = 0.0, time.time()
+
+    def teardown(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:
+        if stage == "fit" and self._start is not None:
+            self.seconds, self._start = self.elapsed, None
+
+    def state_dict(self) -> dict:
+        return {"seconds": self.elapsed}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self.seconds = float(state_dict["seconds"])
 
 
 class RunDirSaveConfig(SaveConfigCallback):

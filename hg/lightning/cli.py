@@ -15,7 +15,7 @@ import yaml
 from pytorch_lightning.callbacks import ModelCheckpoint
 from pytorch_lightning.cli import LightningArgumentParser, LightningCLI
 
-from hg.lightning.callbacks import PerProbeAccuracy, RunDirSaveConfig
+from hg.lightning.callbacks import PerProbeAccuracy, RunDirSaveConfig, TrainingClock
 from hg.lightning.data import ProbeDataModule
 from hg.lightning.module import HapticGlance
 from hg.lightning.viz import ProbeMaps
@@ -46,6 +46,7 @@ class HapticCLI(LightningCLI):
                              "last_checkpoint.auto_insert_metric_name": False})
         parser.add_lightning_class_args(PerProbeAccuracy, "per_probe_accuracy")
         parser.add_lightning_class_args(ProbeMaps, "probe_maps")  # heat maps and confusion matrices at test end
+        parser.add_lightning_class_args(TrainingClock, "training_clock")  # training time over resumed attempts
         parser.link_arguments("seed_everything", "data.seed")
         parser.link_arguments("data.n_probes", "model.n_probes")
         parser.link_arguments("data", "model.n_classes", compute_fn=lambda data: len(data.object_set),

@@ -22,7 +22,7 @@ def fit_and_test(config: Path, seed: int, folder: Path, *, eval_seed: int, test_
     best checkpoint and the run's facts; the caller adds what it is for and writes it."""
     import wandb
 
-    from hg.lightning.callbacks import per_probe_table
+    from hg.lightning.callbacks import TrainingClock, per_probe_table
     from hg.lightning.cli import cli
 
     checkpoints = folder / "checkpoints"
@@ -42,9 +42,8 @@ def fit_and_test(config: Path, seed: int, folder: Path, *, eval_seed: int, test_
     else:
         last = checkpoints / "last.ckpt"
         resumed_from = checkpoint_step(last) if last.is_file() else 0
-        start = time.time()
         run.trainer.fit(run.model, datamodule=run.datamodule, ckpt_path=str(last) if last.is_file() else None)
-        train_s = time.time() - start
+        train_s = next(c for c in run.trainer.callbacks if isinstance(c, TrainingClock)).seconds  # every attempt's
         best = next(c for c in run.trainer.checkpoint_callbacks if getattr(c, "monitor", None) == "val/acc")
         best_path, best_score = best.best_model_path, best.best_model_score
     start = time.time()
