@@ -210,6 +210,25 @@ def noise_teachers(patterns: list[str] | None, config_teachers: list[str], rate:
     return teachers
 
 
+def training_under_noise(row: str, config: str, rate: float, teachers: list[str] | None) -> tuple[str | None, str, list[str]]:
+    """How train_under_noise trains `row` at `rate` > 0: the row it trains when `row` scores another's checkpoints
+    (else None), the config it trains, and the CLI overrides (the sensor's faults; for a row copying a planner, the
+    teachers planned at the rate and model.choice_repeats)."""
+    import yaml
+
+    from reproduce_table1 import ROWS, config_of
+
+    source = ROWS[row].scores if row in ROWS else None
+    trained = config_of(source) if source else config
+    model = yaml.safe_load((ROOT / trained).read_text()).get("model") or {}
+    extra = noise_args(rate)
+    if model.get("imitate"):
+        extra += ["--model.imitate", json.dumps(noise_teachers(teachers, model["imitate"], rate))]
+        if model.get("choice_reads_probes"):
+            extra += ["--model.choice_repeats", "true"]
+    return source, trained, extra
+
+
 def train_under_noise(row: str, config: str, seed: int, rate: float, table_runs: dict[int, dict], runs_dir: Path,
                       test_episodes: int, steps: int | None, teachers: list[str] | None = None) -> dict:
     """Our model trained at the rate it is tested at, as the point-cloud baselines are: the row's config with the
@@ -217,11 +236,7 @@ def train_under_noise(row: str, config: str, seed: int, rate: float, table_runs:
     scores another's checkpoints (e.g. with model.library_namer) trains that row's config and scores its best
     checkpoint as its own config reads it. A row that copies a planner copies one planned at the rate (its fault
     draws replayed, noise_teachers(teachers)), and its choice may probe a candidate again (model.choice_repeats),
-    as that planner does."""
-    import yaml
-
-    from reproduce_table1 import ROWS, config_of
-
+    as that planner does (training_under_noise)."""
     if rate == 0:
         if seed not in table_runs:
             raise FileNotFoundError(f"docs/results/runs/{row}-seed{seed}.json: no table run of {row} with seed {seed} "
@@ -233,14 +248,7 @@ def train_under_noise(row: str, config: str, seed: int, rate: float, table_runs:
                    else {})}
     from hg.lightning.experiment import fit_and_test
 
-    source = ROWS[row].scores if row in ROWS else None
-    trained = config_of(source) if source else config
-    model = yaml.safe_load((ROOT / trained).read_text()).get("model") or {}
-    extra = noise_args(rate)
-    if model.get("imitate"):
-        extra += ["--model.imitate", json.dumps(noise_teachers(teachers, model["imitate"], rate))]
-        if model.get("choice_reads_probes"):
-            extra += ["--model.choice_repeats", "true"]
+    source, trained, extra = training_under_noise(row, config, rate, teachers)
     folder = runs_dir / f"ours_trained-{source or row}-rate{round(rate * 100):02d}-seed{seed}"
     facts = fit_and_test(ROOT / trained, seed, folder, eval_seed=EVAL_SEED, test_episodes=test_episodes, steps=steps,
                          extra_args=extra)
@@ -392,6 +400,12 @@ def main() -> None:
             path = args.out / "noise_runs" / f"{name}-rate{round(rate * 100):02d}-seed{seed}.json"
             if path.is_file() and (model != "ours" or
                                    json.loads(path.read_text())["checkpoint"] == repo_path(checkpoints[seed])):
+                if model == "ours_trained" and rate > 0:  # made as this run would make it (e.g. the same teachers)?
+                    made = json.loads(path.read_text()).get("command_args")
+                    asked = training_under_noise(trained_row, trained_config, rate, args.noise_teachers)[2]
+                    if made != asked:
+                        raise ValueError(f"{path}: made with {made}, this run asks {asked}; move it and its runs "
+                                         f"in {repo_path(args.runs_dir)} away to make this one")
                 continue
             code_commit = commit()
             if model == "ours":

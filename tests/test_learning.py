@@ -920,6 +920,12 @@ def test_scoring_a_checkpoint_trains_nothing_and_gives_what_its_run_gave(tmp_pat
     saved = torch.load(tmp_path / "trained" / "checkpoints" / "last.ckpt", weights_only=False)["callbacks"]
     assert saved["TrainingClock"]["seconds"] == pytest.approx(trained["train_wall_s"], rel=0.2)
     assert again["train_wall_s"] >= saved["TrainingClock"]["seconds"]
+    # asked to resume it as another run (another discount here; another teacher or sensor alike): refused, untouched
+    last = tmp_path / "trained" / "checkpoints" / "last.ckpt"
+    before = last.read_bytes()
+    with pytest.raises(ValueError, match=r"last.ckpt: trained with model.gamma=0.9\d* \(now 0.5\).*Move .*trained away"):
+        fit_and_test(Path(TINY), 0, tmp_path / "trained", extra_args=["--model.gamma", "0.5"], **kwargs)
+    assert last.read_bytes() == before
     assert not (tmp_path / "scored" / "checkpoints").exists()
     assert scored["accuracy"] == trained["accuracy"] and scored["best_val_acc"] == trained["best_val_acc"]
     assert scored["best_checkpoint"] == trained["best_checkpoint"]

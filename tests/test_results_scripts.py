@@ -167,6 +167,13 @@ def test_table_row_trains_once_is_reused_and_feeds_the_noise_study(tmp_path):
     assert len(merged["ours_trained-pcrn_fc"]) == 2 and merged["ours"][0] == record["accuracy"][-1]
     noise_md = (tmp_path / "noise.md").read_text()
     assert "Ours trained at the rate" in noise_md and "| [0] |" in noise_md  # every rate of it has seed 0 only
+    # a record made otherwise (say copying other teachers) is not taken for this run's, nor overwritten
+    made = tmp_path / "noise_runs" / "ours_trained-pcrn_fc-rate50-seed0.json"
+    made.write_text(json.dumps(noisy | {"command_args": noisy["command_args"] + ["--model.imitate", '["x.npz"]']}))
+    other = run("reproduce_noise", "--models", "ours_trained", "--rates", "0.5", "--seeds", "0", "--ours-steps", "2",
+                "--out", str(tmp_path), "--runs-dir", str(tmp_path / "noise_ckpt"))
+    assert other.returncode != 0 and "ours_trained-pcrn_fc-rate50-seed0.json: made with [" in other.stderr
+    assert "x.npz" in json.loads(made.read_text())["command_args"][-1]
     missing = run("reproduce_noise", "--models", "ours_trained", "--rates", "0", "--seeds", "1", "--out", str(tmp_path))
     assert missing.returncode != 0 and "pcrn_fc-seed1.json: no table run" in missing.stderr
     # where the checkpoint's policy probes, beside the fixed scans, on the same episodes

@@ -4,8 +4,10 @@ cut off at the end of a working session goes on where it stopped instead of star
 from __future__ import annotations
 
 import hashlib
+import json
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, is_dataclass
 from pathlib import Path
 
 from hg.provenance import repo_path
@@ -41,7 +43,16 @@ def fit_and_test(config: Path, seed: int, folder: Path, *, eval_seed: int, test_
         train_s, best_path, best_score = 0.0, str(checkpoint), val
     else:
         last = checkpoints / "last.ckpt"
-        resumed_from = checkpoint_step(last) if last.is_file() else 0
+        resumed_from = 0
+        if last.is_file():
+            import torch
+
+            saved = torch.load(last, map_location="cpu", weights_only=False)
+            differ = changed_hyperparameters(saved, run.model.hparams, run.datamodule.hparams)
+            if differ:
+                raise ValueError(f"{last}: trained with {'; '.join(differ)}; resuming would finish it as another run. "
+                                 f"Move {folder} away to train this one anew")
+            resumed_from = int(saved["global_step"])
         run.trainer.fit(run.model, datamodule=run.datamodule, ckpt_path=str(last) if last.is_file() else None)
         train_s = next(c for c in run.trainer.callbacks if isinstance(c, TrainingClock)).seconds  # every attempt's
         best = next(c for c in run.trainer.checkpoint_callbacks if getattr(c, "monitor", None) == "val/acc")
@@ -64,10 +75,25 @@ def fit_and_test(config: Path, seed: int, folder: Path, *, eval_seed: int, test_
     }
 
 
-def checkpoint_step(path: Path) -> int:
-    import torch
+EVALUATION_ONLY = ("test_episodes", "eval_batch_size")  # what a resumed run may change: the test, not the training
 
-    return int(torch.load(path, map_location="cpu", weights_only=False)["global_step"])
+
+def changed_hyperparameters(saved: dict, model_hparams: Mapping, data_hparams: Mapping) -> list[str]:
+    """'model.X=<saved> (now <asked>)' for every hyperparameter a checkpoint was trained with that this run sets
+    otherwise (e.g. another teacher in model.imitate, another data.noise): resuming would train the rest of the
+    steps as another run and record it under this one's name. Keys one side lacks (added to the code since) are
+    skipped: their defaults keep the older behaviour."""
+    def plain(value):
+        return json.loads(json.dumps(value, default=lambda o: asdict(o) if is_dataclass(o) else str(o)))
+
+    differ = []
+    for prefix, key, asked in (("model", "hyper_parameters", model_hparams),
+                               ("data", "datamodule_hyper_parameters", data_hparams)):
+        before = saved.get(key) or {}
+        for name in sorted(set(before) & set(asked)):
+            if name not in EVALUATION_ONLY and not name.startswith("_") and plain(before[name]) != plain(asked[name]):
+                differ.append(f"{prefix}.{name}={plain(before[name])} (now {plain(asked[name])})")
+    return differ
 
 
 def test_fingerprint(datamodule) -> str:
