@@ -342,7 +342,9 @@ def noise_markdown(summary: dict, merged_at: str) -> str:
                 "classifier's logits (our classifier never saw sensor faults; the namer's likelihood models them)."]
                if "ours_namer_alone" in summary else []),
              *(["- Ours trained at the rate: that table row's config trained, validated and tested with the noise "
-                "at the rate, as PointNet and DGCNN are; at 0 % it is the row's own table run."]
+                "at the rate, as PointNet and DGCNN are; at 0 % it is the row's own table run. A row copying the "
+                "greedy planner copies one planned at the rate (its faults replayed, each run's teachers in its "
+                "record's `command_args`), free to probe a candidate again as that planner is."]
                if any(m.startswith("ours_trained-") for m in summary) else []),
              *(["- Greedy planner under faults (beyond the paper, no learning): Table 1's planner row on the same "
                 "episodes with the faulty sensor; it weighs its library of training episodes with the sensor's model, "
