@@ -496,7 +496,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS))
     parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
-    parser.add_argument("--jobs", type=int, default=1, help="runs trained at once (each gets cores/jobs threads)")
+    parser.add_argument("--jobs", type=int, default=1, help="runs trained at once (each gets cores/jobs threads: beside other jobs on the machine "
+                             "ask for as many as cores, since a run on 2 threads sharing a core crawls)")
     parser.add_argument("--steps", type=int, default=None, help="override max_steps (smoke tests only)")
     parser.add_argument("--test-episodes", type=int, default=TEST_EPISODES, help="test set size (smoke tests only)")
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
