@@ -62,6 +62,7 @@ from hg.nets.library import log_likelihood  # noqa: E402
 from hg.sim import SPLITS, PoseRegions, ProbeSimulator, SensorNoise, candidate_requests, sample_episodes  # noqa: E402
 from hg.sim.library import MISS, library_readings, readings  # noqa: E402
 
+Choose = Callable[[int, torch.Tensor, torch.Tensor], "torch.Tensor | None"]  # (k, used, query) -> candidates or None
 CHUNK = 128  # scored episodes planned side by side: their weights over the library are (CHUNK, L)
 
 
@@ -117,13 +118,12 @@ def best_first_two(bins: np.ndarray, labels: np.ndarray, n_bins: int, n_classes:
         p = mass / mass.sum(-1, keepdims=True).clip(min=1)
         entropy = -(mass * np.log(p.clip(min=1e-30))).sum((-2, -1))
         correct[:, first], entropy[:, first] = -1, np.inf  # in ideal mode a repeated probe reads the same
-        first_mass = mass[:, 0].sum(1)  # (first's bin, class)
+        first_mass = mass[:, 0].sum(1)  # (first's bin, class): every second candidate partitions the same episodes
         first_p = first_mass / first_mass.sum(-1, keepdims=True).clip(min=1)
+        entropy_first = -(first_mass * np.log(first_p.clip(min=1e-30))).sum() / n
         for rule, second in (("best", correct.argmax(1)), ("greedy", entropy.argmin(1))):
-            accuracy = correct[np.arange(n_bins), second].sum() / n
-            found.setdefault(rule, []).append({
-                "first": first, "second": second, "accuracy": accuracy,
-                "entropy_first": -(first_mass * np.log(first_p.clip(min=1e-30))).sum() / n})
+            found.setdefault(rule, []).append({"first": first, "second": second, "entropy_first": entropy_first,
+                                               "accuracy": correct[np.arange(n_bins), second].sum() / n})
     best = max(found["best"], key=lambda r: r["accuracy"])
     greedy = min(found["greedy"], key=lambda r: r["entropy_first"])
     return {"best": best, "greedy": greedy}
@@ -131,7 +131,7 @@ def best_first_two(bins: np.ndarray, labels: np.ndarray, n_bins: int, n_classes:
 
 def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tensor, labels: torch.Tensor,
                    n_probes: int, n_bins: int, n_classes: int, sigma: float, mismatch: float,
-                   choose: Callable[[int, torch.Tensor, torch.Tensor], torch.Tensor | None] | None = None,
+                   choose: Choose | None = None,
                    faulty: torch.Tensor | None = None, noise: SensorNoise = SensorNoise(), probe_length: float = 1.0
                    ) -> tuple[np.ndarray, np.ndarray]:
     """(Q, N) candidates probed in each episode (its readings of every candidate: `query`, (Q, C)) and the class
@@ -163,12 +163,12 @@ def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tens
     return torch.stack(chosen, 1).numpy(), torch.stack(named, 1).numpy()
 
 
-def fixed_sequence(sequence: np.ndarray) -> Callable[[int, torch.Tensor, torch.Tensor], torch.Tensor]:
+def fixed_sequence(sequence: np.ndarray) -> Choose:
     """A `choose` for probe_episodes: candidate sequence[k] at probe k in every episode."""
     return lambda k, used, query: torch.full((len(query),), int(sequence[k]))
 
 
-def first_two(rule: dict, width: float, n_bins: int) -> Callable[[int, torch.Tensor, torch.Tensor], torch.Tensor | None]:
+def first_two(rule: dict, width: float, n_bins: int) -> Choose:
     """A `choose` for probe_episodes: best_first_two's rule for the first two probes, the planner's after."""
     def choose(k: int, used: torch.Tensor, query: torch.Tensor) -> torch.Tensor | None:
         if k == 0:

@@ -210,7 +210,8 @@ def noise_teachers(patterns: list[str] | None, config_teachers: list[str], rate:
     return teachers
 
 
-def training_under_noise(row: str, config: str, rate: float, teachers: list[str] | None) -> tuple[str | None, str, list[str]]:
+def noise_training_setup(row: str, config: str, rate: float,
+                         teachers: list[str] | None) -> tuple[str | None, str, list[str]]:
     """How train_under_noise trains `row` at `rate` > 0: the row it trains when `row` scores another's checkpoints
     (else None), the config it trains, and the CLI overrides (the sensor's faults; for a row copying a planner, the
     teachers planned at the rate and model.choice_repeats)."""
@@ -236,7 +237,7 @@ def train_under_noise(row: str, config: str, seed: int, rate: float, table_runs:
     scores another's checkpoints (e.g. with model.library_namer) trains that row's config and scores its best
     checkpoint as its own config reads it. A row that copies a planner copies one planned at the rate (its fault
     draws replayed, noise_teachers(teachers)), and its choice may probe a candidate again (model.choice_repeats),
-    as that planner does (training_under_noise)."""
+    as that planner does (noise_training_setup)."""
     if rate == 0:
         if seed not in table_runs:
             raise FileNotFoundError(f"docs/results/runs/{row}-seed{seed}.json: no table run of {row} with seed {seed} "
@@ -248,7 +249,7 @@ def train_under_noise(row: str, config: str, seed: int, rate: float, table_runs:
                    else {})}
     from hg.lightning.experiment import fit_and_test
 
-    source, trained, extra = training_under_noise(row, config, rate, teachers)
+    source, trained, extra = noise_training_setup(row, config, rate, teachers)
     folder = runs_dir / f"ours_trained-{source or row}-rate{round(rate * 100):02d}-seed{seed}"
     facts = fit_and_test(ROOT / trained, seed, folder, eval_seed=EVAL_SEED, test_episodes=test_episodes, steps=steps,
                          extra_args=extra)
@@ -400,14 +401,13 @@ def main() -> None:
             elif model == "ours_trained":
                 name = f"ours_trained-{trained_row}"
             path = args.out / "noise_runs" / f"{name}-rate{round(rate * 100):02d}-seed{seed}.json"
-            if path.is_file() and (model != "ours" or
-                                   json.loads(path.read_text())["checkpoint"] == repo_path(checkpoints[seed])):
+            made = json.loads(path.read_text()) if path.is_file() else None
+            if made and (model != "ours" or made["checkpoint"] == repo_path(checkpoints[seed])):
                 if model == "ours_trained" and rate > 0:  # made as this run would make it (e.g. the same teachers)?
-                    made = json.loads(path.read_text()).get("command_args")
-                    asked = training_under_noise(trained_row, trained_config, rate, args.noise_teachers)[2]
-                    if made != asked:
-                        raise ValueError(f"{path}: made with {made}, this run asks {asked}; move it and its runs "
-                                         f"in {repo_path(args.runs_dir)} away to make this one")
+                    asked = noise_training_setup(trained_row, trained_config, rate, args.noise_teachers)[2]
+                    if made.get("command_args") != asked:
+                        raise ValueError(f"{path}: made with {made.get('command_args')}, this run asks {asked}; move "
+                                         f"it and its runs in {repo_path(args.runs_dir)} away to make this one")
                 continue
             code_commit = commit()
             if model == "ours":

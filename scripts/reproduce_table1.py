@@ -467,7 +467,8 @@ def markdown(table: dict[str, dict], runs: dict[str, list[dict]], merged_at: str
     lines += ["", "With two jobs in parallel each trains on one torch thread.",
               "A run resumed after an interruption counts every attempt's training time up to its last checkpoint "
               "(`hg.lightning.callbacks.TrainingClock`, in the checkpoints since 2026-12-05); one resumed before "
-              "that counts only its last attempt (`resumed_from_step` in its JSON).", "", "## Targets (issue #4)", "", *targets(table), ""]
+              "that counts only its last attempt (`resumed_from_step` in its JSON).",
+              "", "## Targets (issue #4)", "", *targets(table), ""]
     return "\n".join(lines)
 
 
@@ -496,8 +497,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS))
     parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
-    parser.add_argument("--jobs", type=int, default=1, help="runs trained at once (each gets cores/jobs threads: beside other jobs on the machine "
-                             "ask for as many as cores, since a run on 2 threads sharing a core crawls)")
+    parser.add_argument("--jobs", type=int, default=1,
+                        help="runs trained at once (each gets cores/jobs threads: beside other jobs on the machine ask "
+                             "for as many as cores, since a run on 2 threads sharing a core crawls)")
     parser.add_argument("--steps", type=int, default=None, help="override max_steps (smoke tests only)")
     parser.add_argument("--test-episodes", type=int, default=TEST_EPISODES, help="test set size (smoke tests only)")
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
