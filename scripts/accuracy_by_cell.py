@@ -71,7 +71,7 @@ def planner_namer(teacher: list[str], split: str, episodes: int, mode: str):
     batches = EvalEpisodes(regions, split, episodes, 256, data.n_classes, seed=0).batches  # as the rollouts read them
     labels = np.concatenate([b["labels"].numpy() for b in batches])
     poses = np.concatenate([b["poses"].numpy() for b in batches])
-    candidates = candidate_requests(meta["places"], meta["span"], meta["leans"])
+    candidates = candidate_requests(meta["places"], meta["span"], meta["leans"], meta["along_leans"])
     start = time.time()
     with ProbeSimulator("hg4", batch_size=1024, mode="ideal", seed=0) as sim:
         namer = BayesNamer(meta, sim, regions, len(sim.classes))

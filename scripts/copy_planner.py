@@ -158,7 +158,7 @@ def main() -> None:
     regions, n_classes = PoseRegions(sim.scene), len(sim.classes)
     teacher = load_teacher(args.teacher, regions, "hg4", meta["n_probes"])
     n_probes, probe_length = meta["n_probes"], sim.scene.probe_length
-    candidates = candidate_requests(meta["places"], meta["span"], meta["leans"])
+    candidates = candidate_requests(meta["places"], meta["span"], meta["leans"], meta["along_leans"])
     match = (teacher["requests"].numpy()[:, :, None] == candidates[None, None].astype(np.float32)).all(-1)
     if not match.any(-1).all():
         parser.error(f"--teacher: {int((~match.any(-1)).sum())} requests are not candidates of the teacher's meta")
@@ -193,7 +193,7 @@ def main() -> None:
     runs = {"copy": (network_choice(net, n_probes, probe_length, None), len(query)),
             "copy_sampled": (network_choice(net, n_probes, probe_length, torch.Generator().manual_seed(args.seed)),
                              len(query)),
-            "fixed": (fixed_sequence(order * (1 + 2 * len(meta["leans"]))), len(query)),
+            "fixed": (fixed_sequence(order * (len(candidates) // meta["places"])), len(query)),
             "random": (random_choice(torch.Generator().manual_seed(args.seed)), len(query))}
     if args.planner:
         runs["planner"] = (None, min(args.planner, len(query)))

@@ -5,11 +5,11 @@ every order, span, lean and pair placement read so far, so that target needs pro
 ones touched. This script asks how far that can go without learning anything. A library of episodes (objects at
 poses of --library-split) is probed once with every candidate probe: the places of the scan (--places over the
 middle --span of the line) times a direction (straight down, or leaning across the line to +x or -x by each of
---leans, as model.scan_side). Each episode of --split is then probed --n-probes times; before each probe the
-planner weighs the library by how well each library episode's readings of the probes so far match this episode's
-(a touch's distance along the ray within --sigma, touch against miss by --mismatch), and takes the candidate whose
-reading would leave the least entropy over the class, expected over the weighted library (readings binned by
---bin). After each probe it names the class of most weight.
+--leans, as model.scan_side, and along it to +y or -y by each of --along-leans). Each episode of --split is then
+probed --n-probes times; before each probe the planner weighs the library by how well each library episode's
+readings of the probes so far match this episode's (a touch's distance along the ray within --sigma, touch against
+miss by --mismatch), and takes the candidate whose reading would leave the least entropy over the class, expected
+over the weighted library (readings binned by --bin). After each probe it names the class of most weight.
 
 With the library drawn from the scored split's own poses (`--library-split val`, the default) it has seen the
 held-out positions, as the nearest-neighbour ceilings have: a reading of what adaptive probes can say, not a
@@ -34,10 +34,10 @@ whose episodes are not training episodes.
         --mirror --episodes 3072 --seed 10 --save-rollouts data/planner/train_s10.npz   # a teacher (model.imitate)
 
 Last line: JSON {"planner" [and "fixed", "best_first_two"]: {"accuracy": [after probe 1, ..., N], "touches": ..,
-"touches_first_half": .., "tilt_deg": .., "leaning_towards_object": .., "places": .., "repeats": ..}, "library": ..,
-"library_split": .., "shifts": .., "mirror": .., "library_episodes": .., "noise": .., "episodes": .., "split": ..,
-"mode": .., "table_episodes": .., "candidates": .. [, "first_two_on_library": {"best" | "greedy": {"first":
-candidate, "accuracy": on the library after two probes}}]}.
+"touches_first_half": .., "tilt_deg": .., "leaning_towards_object": .., "leaning_along_line": .., "places": ..,
+"repeats": ..}, "library": .., "library_split": .., "shifts": .., "mirror": .., "library_episodes": .., "noise": ..,
+"episodes": .., "split": .., "mode": .., "table_episodes": .., "candidates": .., "along_leans": .. [,
+"first_two_on_library": {"best" | "greedy": {"first": candidate, "accuracy": on the library after two probes}}]}.
 """
 from __future__ import annotations
 
@@ -182,19 +182,20 @@ def first_two(rule: dict, width: float, n_bins: int) -> Choose:
 def summary(chosen: np.ndarray, named: np.ndarray, labels: np.ndarray, query: np.ndarray, candidates: np.ndarray,
             offsets: np.ndarray, sim: ProbeSimulator) -> dict:
     """Accuracy after each probe, touches per episode (all, first half), mean tilt from vertical, the share of
-    leaning probes that lean towards the object's side, distinct places per episode, and probes per episode that
-    read a candidate again (under faults)."""
+    probes leaning across the line that lean towards the object's side, the share of probes leaning along it,
+    distinct places per episode, and probes per episode that read a candidate again (under faults)."""
     touched = np.take_along_axis(query, chosen, 1) != MISS
     requests = candidates[chosen]
     direction = sim.scene.request_to_probe(requests.reshape(-1, 4))[1].reshape(*requests.shape[:2], 3)
     tilt = np.degrees(np.arccos(np.clip(-direction[..., 2], -1, 1)))
-    leaning = tilt > 1.0
+    across, along = np.abs(direction[..., 0]) > 1e-6, np.abs(direction[..., 1]) > 1e-6
     towards = np.sign(direction[..., 0]) == np.sign(offsets)[:, None]
     return {"accuracy": [round(float(a), 4) for a in (named == labels[:, None]).mean(0)],
             "touches": round(float(touched.sum(1).mean()), 3),
             "touches_first_half": round(float(touched[:, :chosen.shape[1] // 2].sum(1).mean()), 3),
             "tilt_deg": round(float(tilt.mean()), 2),
-            "leaning_towards_object": round(float(towards[leaning].mean()), 3) if leaning.any() else None,
+            "leaning_towards_object": round(float(towards[across].mean()), 3) if across.any() else None,
+            "leaning_along_line": round(float(along.mean()), 3),
             "places": round(float(np.mean([len(set(requests[i, :, 0])) for i in range(len(requests))])), 2),
             "repeats": round(float(np.mean([chosen.shape[1] - len(set(row)) for row in chosen.tolist()])), 3)}
 
@@ -232,6 +233,8 @@ def main() -> None:
     parser.add_argument("--span", type=float, default=0.5, help="the middle of the line they cover (request units)")
     parser.add_argument("--leans", type=float, nargs="*", default=[0.6, 1.0, 2.0],
                         help="leans across the line, as model.scan_side (0.6: 16.7 degrees, 1.0: 26.6, 2.0: 45)")
+    parser.add_argument("--along-leans", type=float, nargs="*", default=[],
+                        help="leans along the line, to +y and -y (the same sizes as --leans); none by default")
     parser.add_argument("--sigma", type=float, default=0.005, help="touch distance tolerance (m)")
     parser.add_argument("--mismatch", type=float, default=1e-3, help="weight kept by a touch read as a miss or back")
     parser.add_argument("--bin", type=float, default=0.01, help="reading bins for the planner's entropy (m)")
@@ -253,8 +256,10 @@ def main() -> None:
     if args.shifts < 0 or (args.shifts and (args.places < 2 or args.span * (1 + 2 * args.shifts / (args.places - 1)) > 1)):
         parser.error(f"--shifts {args.shifts}: must be >= 0, with --places >= 2, and keep the library's places on the "
                      "line (--span + shifts * place step <= 1)")
-    if any(not 0 < lean <= 2 for lean in args.leans):
-        parser.error(f"--leans {args.leans}: each must be in (0, 2] (uz = 1 - lean stays in [-1, 1])")
+    for name in ("leans", "along_leans"):
+        if any(not 0 < lean <= 2 for lean in getattr(args, name)):
+            parser.error(f"--{name.replace('_', '-')} {getattr(args, name)}: each must be in (0, 2] "
+                         "(uz = 1 - lean stays in [-1, 1])")
     if args.sigma <= 0 or args.bin <= 0 or not 0 < args.mismatch < 1:
         parser.error("--sigma and --bin must be > 0, --mismatch in (0, 1)")
     if not 0 <= args.noise < 1:
@@ -262,7 +267,7 @@ def main() -> None:
     if args.best_first_two and (args.noise or args.n_probes < 2):
         parser.error("--best-first-two: needs --n-probes >= 2 and a fault-free sensor (no --noise); its rule for the "
                      "second probe reads the first's clean reading")
-    candidates = candidate_requests(args.places, args.span, args.leans)
+    candidates = candidate_requests(args.places, args.span, args.leans, args.along_leans)
     if args.n_probes > len(candidates):
         parser.error(f"--n-probes {args.n_probes}: more than the {len(candidates)} candidates")
 
@@ -281,7 +286,7 @@ def main() -> None:
     labels, poses = sample_episodes(regions, args.library_split, args.library, n_classes,
                                     np.random.default_rng(args.seed + 1))
     library, labels = library_readings(sim, labels, poses, args.places, args.span, args.leans, args.shifts,
-                                       args.mirror)
+                                       args.mirror, args.along_leans)
     noise = SensorNoise(miss_prob=args.noise, false_contact_prob=args.noise)
     with ProbeSimulator("hg4", batch_size=256 if args.mode == "arm" else 1024, mode=args.mode, noise=noise,
                         seed=args.seed) as probe:  # in arm mode its achieved probes stray from the requested ones
@@ -300,7 +305,8 @@ def main() -> None:
     library_t, labels_t, query_t = torch.from_numpy(library.T.copy()), torch.from_numpy(labels), torch.from_numpy(query)
     offsets = query_poses[:, 0] - sim.scene.probe_x
     order = np.argsort(np.abs(np.linspace(-args.span, args.span, args.places)), kind="stable")
-    runs = {"planner": None} | ({"fixed": fixed_sequence(order * (1 + 2 * len(args.leans)))} if args.fixed else {})
+    fixed = fixed_sequence(order * (len(candidates) // args.places))  # straight down, centre out
+    runs = {"planner": None} | ({"fixed": fixed} if args.fixed else {})
     results = {}
     if args.best_first_two:
         start = time.time()
@@ -327,7 +333,8 @@ def main() -> None:
     print(json.dumps(results | {"library": args.library, "library_split": args.library_split,
                                 "shifts": args.shifts, "mirror": args.mirror, "library_episodes": len(library),
                                 "noise": args.noise, "episodes": args.episodes, "split": args.split, "mode": args.mode,
-                                "table_episodes": args.table_episodes, "candidates": len(candidates)}))
+                                "table_episodes": args.table_episodes, "candidates": len(candidates),
+                                "along_leans": args.along_leans}))
 
 
 if __name__ == "__main__":

@@ -394,9 +394,10 @@ def test_planner_probes_where_the_reading_tells_the_class_and_runs_on_real_probe
     assert len(result["best_first_two"]["accuracy"]) == 3 and result["first_two_on_library"]["best"]["accuracy"] >= \
         result["first_two_on_library"]["greedy"]["accuracy"]
     noisy = run("planner_ceiling", "--episodes", "16", "--library", "2048", "--n-probes", "3", "--places", "3",
-                "--leans", "1.0", "--noise", "0.3")
+                "--leans", "1.0", "--along-leans", "1.0", "--noise", "0.3")
     assert noisy.returncode == 0, noisy.stderr[-2000:]
     result = json.loads(noisy.stdout.strip().splitlines()[-1])
+    assert result["candidates"] == 15 and result["along_leans"] == [1.0]  # 3 places x (straight, +-x, +-y)
     assert result["noise"] == 0.3 and all(0 <= a <= 1 for a in result["planner"]["accuracy"])
     bad = run("planner_ceiling", "--n-probes", "10", "--places", "1", "--leans")
     assert bad.returncode != 0 and "--n-probes 10: more than the 1 candidates" in bad.stderr
@@ -406,20 +407,21 @@ def test_planner_probes_where_the_reading_tells_the_class_and_runs_on_real_probe
     assert bad.returncode != 0 and "--best-first-two: needs" in bad.stderr
 
 
-def test_planner_library_shifts_and_mirror_images_read_as_moved_and_mirrored_objects_do():
+@pytest.mark.parametrize("along_leans", [[], [1.0]])  # leaning along the line too: a mirror image keeps those
+def test_planner_library_shifts_and_mirror_images_read_as_moved_and_mirrored_objects_do(along_leans):
     labels = np.arange(4)  # every hg4 object
     poses = np.array([[0.05, 0.0, -0.25, 5.0, -4.0, 30.0], [-0.08, 0.02, -0.3, -6.0, 8.0, 100.0],
                       [0.1, -0.03, -0.22, 2.0, 3.0, 200.0], [-0.02, 0.04, -0.28, -3.0, -7.0, 300.0]])
     with ProbeSimulator("hg4", batch_size=8, mode="ideal") as sim:
-        library, library_labels = library_readings(sim, labels, poses, 5, 0.4, [1.0], 1, True)
+        library, library_labels = library_readings(sim, labels, poses, 5, 0.4, [1.0], 1, True, along_leans)
         step = 0.2 * 0.5 * (sim.scene.probe_y[1] - sim.scene.probe_y[0])  # 0.2 request units apart, in metres
-        candidates = candidate_requests(5, 0.4, [1.0])
+        candidates = candidate_requests(5, 0.4, [1.0], along_leans)
         moved, mirrored = poses.copy(), poses * [-1, 1, 1, 1, -1, -1]  # x -> -x: Ry and Rz change sign
         moved[:, 1] += step
         as_moved = readings(sim, labels, moved, candidates)
         as_mirrored = readings(sim, labels, mirrored, candidates)
     # blocks of 4: shift -1, its mirror, shift 0, its mirror, shift +1, its mirror (all objects stay in range)
-    assert library.shape == (24, 15) and library_labels.tolist() == labels.tolist() * 6
+    assert library.shape == (24, len(candidates)) and library_labels.tolist() == labels.tolist() * 6
     assert (as_moved != MISS).any() and (as_mirrored != MISS).any()
     np.testing.assert_allclose(library[16:20], as_moved, atol=1e-4)
     np.testing.assert_allclose(library[12:16], as_mirrored, atol=1e-4)

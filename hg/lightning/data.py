@@ -77,8 +77,9 @@ def teacher_meta(paths: list[str]) -> dict:
     metas = []
     for path in paths:
         with np.load(path) as f:
-            metas.append(json.loads(str(f["meta"])))
-    keys = ("places", "span", "leans", "library", "library_split", "shifts", "mirror", "sigma", "mismatch", "bin")
+            metas.append({"along_leans": []} | json.loads(str(f["meta"])))  # files from before along-line leans
+    keys = ("places", "span", "leans", "along_leans", "library", "library_split", "shifts", "mirror", "sigma",
+            "mismatch", "bin")
     for path, meta in zip(paths[1:], metas[1:]):
         if (differ := [k for k in keys if meta.get(k) != metas[0].get(k)]):
             raise ValueError(f"{path}: planner arguments {differ} differ from {paths[0]}'s")

@@ -401,7 +401,8 @@ class HapticGlance(pl.LightningModule):
                                   ("eval_seed", meta.get("eval_seed"), data.regions.seed),
                                   ("places", meta.get("places"), h.candidate_places),
                                   ("span", meta.get("span"), h.candidate_span),
-                                  ("leans", meta.get("leans"), list(h.candidate_leans))):
+                                  ("leans", meta.get("leans"), list(h.candidate_leans)),
+                                  ("along_leans", meta["along_leans"], [])):
             if have != want:
                 raise ValueError(f"model.library_namer: {path}: meta {field}={have!r}, this model needs {want!r} "
                                  "(held-out poses must not enter the library; its candidates must be the model's)")

@@ -34,7 +34,8 @@ def readings(sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray, candida
 
 
 def library_readings(sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray, places: int, span: float,
-                     leans: list[float], shifts: int, mirror: bool) -> tuple[np.ndarray, np.ndarray]:
+                     leans: list[float], shifts: int, mirror: bool, along_leans: list[float] = ()
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """(L', C) readings of the candidates and (L',) classes of the library: its episodes as drawn, and with `shifts`
     also moved along the line by 1..shifts place steps each way (kept where the object stays in the pose range),
     and with `mirror` mirrored across the line too. The ground is alike all along the line, so an object moved one
@@ -42,11 +43,12 @@ def library_readings(sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray,
     of an episode is an episode whose leaning probes swap sides. Symmetries of the world, not poses of another split:
     with them a training library reaches positions its split never holds (the held-out cells)."""
     step = 2 * span / (places - 1) if places > 1 else 0.0
-    n_directions = 1 + 2 * len(leans)
-    wide = candidate_requests(places + 2 * shifts, span + shifts * step, leans)  # the same places, `shifts` more each way
+    n_directions = 1 + 2 * len(leans) + 2 * len(along_leans)
+    # the same places, `shifts` more each way
+    wide = candidate_requests(places + 2 * shifts, span + shifts * step, leans, along_leans)
     full = readings(sim, labels, poses, wide).reshape(len(labels), places + 2 * shifts, n_directions)
     metres = step * 0.5 * (sim.scene.probe_y[1] - sim.scene.probe_y[0])  # one place step along the line
-    swap = mirrored_directions(n_directions)
+    swap = mirrored_directions(n_directions, len(along_leans))
     parts, part_labels = [], []
     for j in range(-shifts, shifts + 1):  # the object moved j steps: it reads at place p what it read at p - j
         y = poses[:, 1] + j * metres
@@ -66,4 +68,4 @@ def teacher_library(meta: dict, sim: ProbeSimulator, regions: PoseRegions, n_cla
     labels, poses = sample_episodes(regions, meta["library_split"], library or meta["library"], n_classes,
                                     np.random.default_rng(meta["seed"] + 1))
     return library_readings(sim, labels, poses, meta["places"], meta["span"], meta["leans"], meta["shifts"],
-                            meta["mirror"])
+                            meta["mirror"], meta.get("along_leans", []))

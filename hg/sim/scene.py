@@ -85,22 +85,27 @@ class Scene:
         return points, direction / np.sqrt((direction ** 2).sum(axis=1))[:, None]
 
 
-def candidate_requests(places: int, span: float, leans: list[float] | tuple[float, ...]) -> np.ndarray:
+def candidate_requests(places: int, span: float, leans: list[float] | tuple[float, ...],
+                       along_leans: list[float] | tuple[float, ...] = ()) -> np.ndarray:
     """(C, 4) requests a discrete chooser picks from (the greedy planner, or a location network choosing among
     candidates): every place of a scan (evenly over the middle `span` of the line, in request units) with every
-    direction, straight down first, then to +x and -x by each lean (ux = +-1, uz = 1 - lean, as model.scan_side).
-    The set is its own mirror image across the line (ux -> -ux), as the mirrored views need."""
-    if places < 1 or not 0 < span <= 1 or any(not 0 < lean <= 2 for lean in leans):
+    direction, straight down first, then to +x and -x by each lean (ux = +-1, uz = 1 - lean, as model.scan_side),
+    then along the line to +y and -y by each of `along_leans` (uy = +-1). The set is its own mirror image across the
+    line (ux -> -ux), as the mirrored views need."""
+    if places < 1 or not 0 < span <= 1 or any(not 0 < lean <= 2 for lean in (*leans, *along_leans)):
         raise ValueError(f"candidate_requests: places={places} must be >= 1, span={span} in (0, 1], leans={list(leans)} "
-                         "each in (0, 2] (uz = 1 - lean stays in [-1, 1])")
-    directions = [(0.0, 0.0, 1.0)] + [(side, 0.0, 1.0 - lean) for lean in leans for side in (1.0, -1.0)]
+                         f"and along_leans={list(along_leans)} each in (0, 2] (uz = 1 - lean stays in [-1, 1])")
+    directions = ([(0.0, 0.0, 1.0)] + [(side, 0.0, 1.0 - lean) for lean in leans for side in (1.0, -1.0)]
+                  + [(0.0, side, 1.0 - lean) for lean in along_leans for side in (1.0, -1.0)])
     return np.array([(py, *d) for py in np.linspace(-span, span, places) for d in directions])
 
 
-def mirrored_directions(directions: int) -> list[int]:
+def mirrored_directions(directions: int, along: int = 0) -> list[int]:
     """candidate_requests' directions at one place, mirrored across the line: direction j of the mirror image
-    is direction [j] of the original (straight down stays; +x and -x of each lean trade places)."""
-    if directions % 2 != 1:
-        raise ValueError(f"{directions} directions are not straight down and pairs of leans to +x and -x "
-                         "(candidate_requests)")
-    return [0] + [i + (1 if i % 2 else -1) for i in range(1, directions)]
+    is direction [j] of the original (straight down stays; +x and -x of each lean trade places; the last
+    2 * `along`, leaning along the line, stay)."""
+    across = directions - 2 * along
+    if across % 2 != 1 or along < 0:
+        raise ValueError(f"{directions} directions are not straight down, pairs of leans to +x and -x and {along} "
+                         "pairs along the line (candidate_requests)")
+    return [0] + [i + (1 if i % 2 else -1) for i in range(1, across)] + list(range(across, directions))
