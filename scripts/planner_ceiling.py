@@ -20,7 +20,8 @@ the arm, whose achieved probes stray from the requested ones (every candidate is
 read the chosen one), and `--table-episodes` scores the very episodes the tables score. Minutes on one core.
 `--best-first-two` also scores the planner with its first two probes chosen by trying every pair on the library
 (binned readings, in-sample) for the fewest errors after two probes, the greedy planner's after: how much the
-greedy choice leaves on the table after 2 probes.
+greedy choice leaves on the table after 2 probes. `--two-step PROBES` also scores the planner looking two probes
+ahead for its first PROBES probes (TwoStep): whether a probe that sets up the next beats the most telling one.
 
 `--save-rollouts FILE` keeps the planner's episodes (classes, poses, the requests it chose) as a teacher for a policy
 to copy (model.imitate, docs/training.md); the file records the splits and seeds, so a model can refuse a teacher
@@ -33,7 +34,7 @@ whose episodes are not training episodes.
     .venv/bin/python scripts/planner_ceiling.py --library-split train --split train --library 32768 --shifts 5 \
         --mirror --episodes 3072 --seed 10 --save-rollouts data/planner/train_s10.npz   # a teacher (model.imitate)
 
-Last line: JSON {"planner" [and "fixed", "best_first_two"]: {"accuracy": [after probe 1, ..., N], "touches": ..,
+Last line: JSON {"planner" [and "fixed", "best_first_two", "two_step"]: {"accuracy": [after probe 1, ..., N], "touches": ..,
 "touches_first_half": .., "tilt_deg": .., "leaning_towards_object": .., "leaning_along_line": .., "places": ..,
 "repeats": ..}, "library": .., "library_split": .., "shifts": .., "mirror": .., "library_episodes": .., "noise": ..,
 "episodes": .., "split": .., "mode": .., "table_episodes": .., "candidates": .., "along_leans": .. [,
@@ -129,11 +130,49 @@ def best_first_two(bins: np.ndarray, labels: np.ndarray, n_bins: int, n_classes:
     return {"best": best, "greedy": greedy}
 
 
+class TwoStep:
+    """The planner looking two probes ahead for its first `probes` probes: of the `top` candidates with the least
+    entropy one probe ahead, it takes the one whose reading, followed by the best second probe for that reading,
+    leaves the least class entropy, expected over the weighted library. Why: the greedy planner's ceiling after 5
+    probes stays near 0.83 (docs/training.md); a probe that says little itself may set up a telling one. Only library
+    episodes within `keep` of the most likely one's weight are counted (a reading that contradicts one probe keeps
+    1e-3 of the weight), for speed. Fault-free sensors only (the bins are the library's clean readings)."""
+
+    def __init__(self, bins: np.ndarray, labels: np.ndarray, n_bins: int, n_classes: int, probes: int,
+                 top: int = 6, keep: float = 2e-3) -> None:
+        self.bins, self.labels = torch.from_numpy(bins), torch.from_numpy(labels).long()
+        self.n_bins, self.n_classes, self.probes, self.top, self.keep = n_bins, n_classes, probes, top, keep
+
+    def entropy_after_two(self, weights: torch.Tensor, used: torch.Tensor, first: int) -> float:
+        """Class entropy (times the weight) left after candidate `first` and, for each binned reading of it, the
+        best unused second candidate; weights (L,) of one episode, used (C,) its candidates probed so far."""
+        kept = torch.nonzero(weights > self.keep * weights.max()).squeeze(1)
+        bins, n_candidates = self.bins[kept], self.bins.shape[1]
+        cell = ((bins[:, first, None] * n_candidates + torch.arange(n_candidates)) * self.n_bins + bins) \
+            * self.n_classes + self.labels[kept, None]
+        mass = torch.bincount(cell.ravel(), weights[kept, None].double().expand(-1, n_candidates).ravel(),
+                              minlength=self.n_bins * n_candidates * self.n_bins * self.n_classes
+                              ).view(self.n_bins, n_candidates, self.n_bins, self.n_classes)
+        p = mass / mass.sum(-1, keepdim=True).clamp(min=1e-30)
+        entropy = -(mass * torch.log(p.clamp(min=1e-30))).sum((-2, -1))  # (first's bin, second)
+        entropy[:, used] = math.inf
+        entropy[:, first] = math.inf
+        return float(entropy.min(1).values.sum())
+
+    def __call__(self, weights: torch.Tensor, used: torch.Tensor, score: torch.Tensor) -> torch.Tensor:
+        """(Q,) candidates for episodes of weights (Q, L), given the one-step entropies `score` (Q, C)."""
+        top = score.topk(min(self.top, int((~used[0]).sum())), dim=1, largest=False).indices
+        rows = range(1) if not used.any() else range(len(weights))  # before any probe every episode is alike
+        picks = torch.stack([top[q, int(torch.tensor([self.entropy_after_two(weights[q], used[q], int(c))
+                                                      for c in top[q]]).argmin())] for q in rows])
+        return picks.expand(len(weights)) if len(picks) < len(weights) else picks
+
+
 def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tensor, labels: torch.Tensor,
                    n_probes: int, n_bins: int, n_classes: int, sigma: float, mismatch: float,
                    choose: Choose | None = None,
-                   faulty: torch.Tensor | None = None, noise: SensorNoise = SensorNoise(), probe_length: float = 1.0
-                   ) -> tuple[np.ndarray, np.ndarray]:
+                   faulty: torch.Tensor | None = None, noise: SensorNoise = SensorNoise(), probe_length: float = 1.0,
+                   two_step: TwoStep | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(Q, N) candidates probed in each episode (its readings of every candidate: `query`, (Q, C)) and the class
     named after each probe: the planner's choices, or those of `choose(k, used, query)` -> (Q,) candidate indices
     (a fixed sequence, or a network copying the planner; None: the planner's), used (Q, C) bool marking the
@@ -141,7 +180,7 @@ def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tens
     library: (C, L) readings. With a faulty sensor, `faulty` (N, Q, C) holds what probe k reads from each candidate
     (an independent draw of the sensor's faults per probe) and `noise` its fault rates: the library is weighed with
     the sensor's model (log_likelihood), and the planner may probe a candidate again, since a second reading can
-    outvote a corrupted first one."""
+    outvote a corrupted first one. With `two_step`, the planner looks two probes ahead for its first probes."""
     log_w = torch.zeros(len(query), library.shape[1])
     weights = torch.ones_like(log_w)  # exp(log_w) relative to each episode's most likely library episode
     used = torch.zeros(query.shape, dtype=torch.bool)
@@ -153,7 +192,7 @@ def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tens
             score = expected_entropy(cells, weights, n_bins, n_classes, noise)
             if faulty is None:  # in ideal mode a repeated probe reads the same
                 score = score.masked_fill(used, math.inf)
-            c = score.argmin(1)
+            c = score.argmin(1) if two_step is None or k >= two_step.probes else two_step(weights, used, score)
         used[rows, c] = True
         chosen.append(c)
         read = query[rows, c] if faulty is None else faulty[k, rows, c]
@@ -245,6 +284,8 @@ def main() -> None:
     parser.add_argument("--best-first-two", action="store_true",
                         help="also score the planner with its first two probes chosen to name the library best after "
                              "two (best_first_two), not greedily")
+    parser.add_argument("--two-step", type=int, default=0, metavar="PROBES",
+                        help="also score the planner looking two probes ahead for its first PROBES probes (TwoStep)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--save-rollouts", type=Path, help="write the planner's episodes here (.npz): a teacher")
     args = parser.parse_args()
@@ -264,6 +305,8 @@ def main() -> None:
         parser.error("--sigma and --bin must be > 0, --mismatch in (0, 1)")
     if not 0 <= args.noise < 1:
         parser.error(f"--noise {args.noise}: must be in [0, 1)")
+    if args.two_step and (args.noise or not 0 < args.two_step < args.n_probes):
+        parser.error(f"--two-step {args.two_step}: needs a fault-free sensor (no --noise) and 0 < PROBES < --n-probes")
     if args.best_first_two and (args.noise or args.n_probes < 2):
         parser.error("--best-first-two: needs --n-probes >= 2 and a fault-free sensor (no --noise); its rule for the "
                      "second probe reads the first's clean reading")
@@ -306,7 +349,9 @@ def main() -> None:
     offsets = query_poses[:, 0] - sim.scene.probe_x
     order = np.argsort(np.abs(np.linspace(-args.span, args.span, args.places)), kind="stable")
     fixed = fixed_sequence(order * (len(candidates) // args.places))  # straight down, centre out
-    runs = {"planner": None} | ({"fixed": fixed} if args.fixed else {})
+    runs = {"planner": (None, None)} | ({"fixed": (fixed, None)} if args.fixed else {})
+    if args.two_step:
+        runs["two_step"] = (None, TwoStep(bins, labels, n_bins, n_classes, args.two_step))
     results = {}
     if args.best_first_two:
         start = time.time()
@@ -315,13 +360,13 @@ def main() -> None:
                                            for name, r in rules.items()}
         print(f"first two probes named on the library: {results['first_two_on_library']} ({time.time() - start:.0f} s)",
               flush=True)
-        runs["best_first_two"] = first_two(rules["best"], args.bin, n_bins)
-    for name, choose in runs.items():
+        runs["best_first_two"] = (first_two(rules["best"], args.bin, n_bins), None)
+    for name, (choose, two_step) in runs.items():
         start = time.time()
         chosen, named = map(np.concatenate, zip(*(
             probe_episodes(query_t[i:i + CHUNK], library_t, cells, labels_t, args.n_probes, n_bins, n_classes,
                            args.sigma, args.mismatch, choose, None if faulty is None else faulty[:, i:i + CHUNK],
-                           noise, sim.scene.probe_length) for i in range(0, len(query), CHUNK))))
+                           noise, sim.scene.probe_length, two_step) for i in range(0, len(query), CHUNK))))
         r = results[name] = summary(chosen, named, query_labels, query, candidates, offsets, sim)
         if name == "planner" and args.save_rollouts:
             save_rollouts(args.save_rollouts, query_labels, query_poses, candidates[chosen], vars(args) | {"summary": r},

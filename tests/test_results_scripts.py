@@ -383,14 +383,22 @@ def test_planner_probes_where_the_reading_tells_the_class_and_runs_on_real_probe
     chosen, named = planner.probe_episodes(queries4, torch.stack([x, y, z]), cells4, labels4, 2, 12, 4, 0.005, 1e-3,
                                            planner.first_two(rules["best"], 0.05, 12))
     assert sorted(chosen[0].tolist()) == sorted(chosen[1].tolist()) == [1, 2] and named[:, 1].tolist() == [0, 3]
+    # looking two probes ahead finds the same pair without trying every one: Y (or Z) first sets up the other
+    two_step = planner.TwoStep(bins4, labels4.numpy(), 12, 4, probes=2)
+    chosen, named = planner.probe_episodes(queries4, torch.stack([x, y, z]), cells4, labels4, 2, 12, 4, 0.005, 1e-3,
+                                           two_step=two_step)
+    assert sorted(chosen[0].tolist()) == sorted(chosen[1].tolist()) == [1, 2] and named[:, 1].tolist() == [0, 3]
+    greedy, _ = planner.probe_episodes(queries4, torch.stack([x, y, z]), cells4, labels4, 2, 12, 4, 0.005, 1e-3)
+    assert greedy[:, 0].tolist() == [0, 0]  # while one step ahead X looks best
     real = run("planner_ceiling", "--episodes", "16", "--library", "2048", "--n-probes", "3", "--places", "3",
-               "--leans", "1.0", "--fixed", "--best-first-two")
+               "--leans", "1.0", "--fixed", "--best-first-two", "--two-step", "2")
     assert real.returncode == 0, real.stderr[-2000:]
     result = json.loads(real.stdout.strip().splitlines()[-1])
     assert result["candidates"] == 9 and len(result["planner"]["accuracy"]) == 3
     assert result["fixed"]["tilt_deg"] == 0 and result["fixed"]["places"] == 3  # straight, one probe per place
     assert result["planner"]["repeats"] == result["fixed"]["repeats"] == 0  # without faults never a candidate twice
     assert all(0 <= a <= 1 for a in result["planner"]["accuracy"])
+    assert len(result["two_step"]["accuracy"]) == 3
     assert len(result["best_first_two"]["accuracy"]) == 3 and result["first_two_on_library"]["best"]["accuracy"] >= \
         result["first_two_on_library"]["greedy"]["accuracy"]
     noisy = run("planner_ceiling", "--episodes", "16", "--library", "2048", "--n-probes", "3", "--places", "3",
