@@ -34,9 +34,9 @@ whose episodes are not training episodes.
     .venv/bin/python scripts/planner_ceiling.py --library-split train --split train --library 32768 --shifts 5 \
         --mirror --episodes 3072 --seed 10 --save-rollouts data/planner/train_s10.npz   # a teacher (model.imitate)
 
-Last line: JSON {"planner" [and "fixed", "best_first_two", "two_step"]: {"accuracy": [after probe 1, ..., N], "touches": ..,
-"touches_first_half": .., "tilt_deg": .., "leaning_towards_object": .., "leaning_along_line": .., "places": ..,
-"repeats": ..}, "library": .., "library_split": .., "shifts": .., "mirror": .., "library_episodes": .., "noise": ..,
+Last line: JSON {"planner" [and "fixed", "best_first_two", "two_step"]: {"accuracy": [after probe 1, ..., N],
+"touches": .., "touches_first_half": .., "tilt_deg": .., "leaning_towards_object": .., "leaning_along_line": ..,
+"places": .., "repeats": ..}, "library": .., "library_split": .., "shifts": .., "mirror": .., "library_episodes": .., "noise": ..,
 "episodes": .., "split": .., "mode": .., "table_episodes": .., "candidates": .., "along_leans": .. [,
 "first_two_on_library": {"best" | "greedy": {"first": candidate, "accuracy": on the library after two probes}}]}.
 """
