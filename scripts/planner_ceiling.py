@@ -36,8 +36,8 @@ whose episodes are not training episodes.
 
 Last line: JSON {"planner" [and "fixed", "best_first_two", "two_step"]: {"accuracy": [after probe 1, ..., N],
 "touches": .., "touches_first_half": .., "tilt_deg": .., "leaning_towards_object": .., "leaning_along_line": ..,
-"places": .., "repeats": ..}, "library": .., "library_split": .., "shifts": .., "mirror": .., "library_episodes": .., "noise": ..,
-"episodes": .., "split": .., "mode": .., "table_episodes": .., "candidates": .., "along_leans": .. [,
+"places": .., "repeats": ..}, "library": .., "library_split": .., "shifts": .., "mirror": .., "library_episodes": ..,
+"noise": .., "episodes": .., "split": .., "mode": .., "table_episodes": .., "candidates": .., "along_leans": .. [,
 "first_two_on_library": {"best" | "greedy": {"first": candidate, "accuracy": on the library after two probes}}]}.
 """
 from __future__ import annotations
