@@ -918,8 +918,10 @@ def test_scoring_a_checkpoint_trains_nothing_and_gives_what_its_run_gave(tmp_pat
     again = fit_and_test(Path(TINY), 0, tmp_path / "trained", **kwargs)
     assert again["resumed_from_step"] == trained["max_steps"] and again["accuracy"] == trained["accuracy"]
     saved = torch.load(tmp_path / "trained" / "checkpoints" / "last.ckpt", weights_only=False)["callbacks"]
-    assert saved["TrainingClock"]["seconds"] == pytest.approx(trained["train_wall_s"], rel=0.2)
-    assert again["train_wall_s"] >= saved["TrainingClock"]["seconds"]
+    # (the checkpoint is written before the attempt ends, so it holds a little less than the attempt's total; how much
+    # less depends on the machine's load, so only the order is asserted)
+    assert 0 < saved["TrainingClock"]["seconds"] <= trained["train_wall_s"] + 0.05  # (train_wall_s is rounded to 0.1)
+    assert again["train_wall_s"] >= saved["TrainingClock"]["seconds"] - 0.05
     # asked to resume it as another run (another discount here; another teacher or sensor alike): refused, untouched
     last = tmp_path / "trained" / "checkpoints" / "last.ckpt"
     before = last.read_bytes()
