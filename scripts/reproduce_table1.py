@@ -235,6 +235,12 @@ ROWS = {
         "(the trained models of the row without the namer), with the greedy planner's namer over a library of training "
         "episodes added to every prediction (beyond the paper)",
         scores="pcrn_fc_candidates_readings_only_imitate_planner_final_mirror"),
+    "pcrn_fc_candidates_readings_only_imitate_planner_final_mirror_library_namer65k": Row(
+        "PCRN-FC+ choosing among the greedy planner's candidate probes from what each candidate read so far alone "
+        "(the trained models of the row without the namer), with the greedy planner's namer over a library of twice as "
+        "many training episodes (65536, with their shifts and mirror images) added to every prediction (beyond the "
+        "paper)",
+        scores="pcrn_fc_candidates_readings_only_imitate_planner_final_mirror"),
     "pcrn_fc_candidates_readings_only_along_line_classifier_imitate_planner_final_mirror": Row(
         "PCRN-FC+ choosing among the greedy planner's candidate probes from what each candidate read so far alone (not "
         "PCRN's state), never one twice, copying the planner for 8000 steps, then the hybrid rule + wide touch set + "

@@ -328,8 +328,20 @@ def test_library_namer_reads_the_probes_as_the_planner_read_its_library_and_refu
     with pytest.raises(ValueError, match=f"model.library_namer: {leaking}: meta library_split='val', this model needs "
                                          "'train'"):
         trainer.validate(make_model(data, location="candidates", library_namer=str(leaking)), datamodule=data)
+    episodes["meta"] = np.array(json.dumps({**json.loads(str(episodes["meta"])), "library_split": "train",
+                                            "along_leans": [1.0]}))
+    along = tmp_path / "along.npz"
+    np.savez(along, **episodes)
+    with pytest.raises(ValueError, match=r"meta along_leans=\[1.0\], this model needs \[\]"):
+        trainer.validate(make_model(data, location="candidates", library_namer=str(along)), datamodule=data)
+    # a larger library than the teacher's, drawn with its seed (library_namer_episodes)
+    larger = make_model(data, location="candidates", library_namer=str(teacher), library_namer_episodes=512)
+    trainer.validate(larger, datamodule=data)
+    assert larger.library_namer.library.shape == (77, 512)
     with pytest.raises(ValueError, match="model.library_namer=.* needs model.location: candidates"):
         HapticGlance(library_namer=str(teacher))
+    with pytest.raises(ValueError, match="model.library_namer_episodes=512: must be >= 1, and needs model.library_namer"):
+        HapticGlance(location="candidates", library_namer_episodes=512)
 
 
 def test_std_schedule_shrinks_the_policy_std_and_travels_with_the_checkpoint(data, tmp_path):

@@ -144,7 +144,7 @@ class HapticGlance(pl.LightningModule):
                  choice_reads_probes: bool = False, choice_along_line: bool = False,
                  choice_reads_state: bool = True, random_probe_share: float = 0.0,
                  along_line_classifier: bool = False, library_namer: str | None = None,
-                 choice_repeats: bool = False) -> None:
+                 library_namer_episodes: int | None = None, choice_repeats: bool = False) -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -266,8 +266,13 @@ class HapticGlance(pl.LightningModule):
         if library_namer is not None and location != "candidates":
             raise ValueError(f"model.library_namer={library_namer!r} names the readings of the planner's candidates, so "
                              f"it needs model.location: candidates, got {location!r}")
+        if library_namer_episodes is not None and (library_namer is None or library_namer_episodes < 1):
+            raise ValueError(f"model.library_namer_episodes={library_namer_episodes}: must be >= 1, and needs "
+                             "model.library_namer")
         # beyond the paper: at validation and test, the planner's namer's log posterior over the class (a library of
-        # training episodes read by nearest match) is added to every prediction; built in setup()
+        # training episodes read by nearest match) is added to every prediction; built in setup(). Its library is the
+        # teacher file's, drawn as its planner drew it, or with library_namer_episodes that many training episodes
+        # (drawn with its seed): more of them reach more of the held-out positions through the shifts
         self.library_namer: LibraryNamer | None = None
         self.baseline = Baseline(policy_dim)  # b_k reads the state s_k the policy reads
         self.line_x = 0.0  # where the probe line is (set with the sim)
@@ -407,7 +412,7 @@ class HapticGlance(pl.LightningModule):
                 raise ValueError(f"model.library_namer: {path}: meta {field}={have!r}, this model needs {want!r} "
                                  "(held-out poses must not enter the library; its candidates must be the model's)")
         with ProbeSimulator(data.object_set, 1024, data.scene, "ideal", seed=0) as sim:
-            library, labels = teacher_library(meta, sim, data.regions, data.n_classes)
+            library, labels = teacher_library(meta, sim, data.regions, data.n_classes, h.library_namer_episodes)
         return LibraryNamer(torch.from_numpy(library), torch.from_numpy(labels).long(), data.n_classes,
                             meta["sigma"], meta["mismatch"], data.noise, data.scene.probe_length).to(self.device)
 
