@@ -104,6 +104,24 @@ def reading_bins(readings: np.ndarray, width: float, n_bins: int) -> np.ndarray:
     return np.where(readings == MISS, 0, 1 + np.minimum(readings / width, n_bins - 2)).astype(np.int64)
 
 
+def pair_mass(bins: np.ndarray, labels: np.ndarray, first: int, n_bins: int, n_classes: int,
+              weights: np.ndarray | None = None) -> np.ndarray:
+    """(n_bins, C, n_bins, n_classes) library episodes (their weight with `weights`) in each (binned reading of
+    candidate `first`, second candidate, its binned reading, class) cell: what `first` and then each candidate tell."""
+    n_candidates = bins.shape[1]
+    cell = ((bins[:, first, None] * n_candidates + np.arange(n_candidates)) * n_bins + bins) * n_classes \
+        + labels[:, None]
+    return np.bincount(cell.ravel(), None if weights is None else np.repeat(weights, n_candidates),
+                       minlength=n_bins * n_candidates * n_bins * n_classes
+                       ).reshape(n_bins, n_candidates, n_bins, n_classes).astype(np.float64)
+
+
+def pair_entropy(mass: np.ndarray) -> np.ndarray:
+    """(first's bin, second candidate) class entropy left, times the weight, of pair_mass's cells."""
+    p = mass / mass.sum(-1, keepdims=True).clip(min=1e-30)
+    return -(mass * np.log(p.clip(min=1e-30))).sum((-2, -1))
+
+
 def best_first_two(bins: np.ndarray, labels: np.ndarray, n_bins: int, n_classes: int) -> dict:
     """The first probe, and the second for each binned reading of the first, that name the library's own episodes
     best after two probes (each (bin, bin) cell named by its commonest class), found by trying every pair: the
@@ -112,12 +130,9 @@ def best_first_two(bins: np.ndarray, labels: np.ndarray, n_bins: int, n_classes:
     n, n_candidates = bins.shape
     found = {}
     for first in range(n_candidates):
-        cell = ((bins[:, first, None] * n_candidates + np.arange(n_candidates)) * n_bins + bins) * n_classes
-        mass = np.bincount((cell + labels[:, None]).ravel(), minlength=n_bins * n_candidates * n_bins * n_classes
-                           ).reshape(n_bins, n_candidates, n_bins, n_classes).astype(np.float64)
+        mass = pair_mass(bins, labels, first, n_bins, n_classes)
         correct = mass.max(-1).sum(-1)  # (first's bin, second): episodes named right
-        p = mass / mass.sum(-1, keepdims=True).clip(min=1)
-        entropy = -(mass * np.log(p.clip(min=1e-30))).sum((-2, -1))
+        entropy = pair_entropy(mass)
         correct[:, first], entropy[:, first] = -1, np.inf  # in ideal mode a repeated probe reads the same
         first_mass = mass[:, 0].sum(1)  # (first's bin, class): every second candidate partitions the same episodes
         first_p = first_mass / first_mass.sum(-1, keepdims=True).clip(min=1)
@@ -140,24 +155,19 @@ class TwoStep:
 
     def __init__(self, bins: np.ndarray, labels: np.ndarray, n_bins: int, n_classes: int, probes: int,
                  top: int = 6, keep: float = 2e-3) -> None:
-        self.bins, self.labels = torch.from_numpy(bins), torch.from_numpy(labels).long()
-        self.n_bins, self.n_classes, self.probes, self.top, self.keep = n_bins, n_classes, probes, top, keep
+        self.bins, self.labels, self.n_bins, self.n_classes = bins, labels, n_bins, n_classes
+        self.probes, self.top, self.keep = probes, top, keep
 
     def entropy_after_two(self, weights: torch.Tensor, used: torch.Tensor, first: int) -> float:
         """Class entropy (times the weight) left after candidate `first` and, for each binned reading of it, the
         best unused second candidate; weights (L,) of one episode, used (C,) its candidates probed so far."""
-        kept = torch.nonzero(weights > self.keep * weights.max()).squeeze(1)
-        bins, n_candidates = self.bins[kept], self.bins.shape[1]
-        cell = ((bins[:, first, None] * n_candidates + torch.arange(n_candidates)) * self.n_bins + bins) \
-            * self.n_classes + self.labels[kept, None]
-        mass = torch.bincount(cell.ravel(), weights[kept, None].double().expand(-1, n_candidates).ravel(),
-                              minlength=self.n_bins * n_candidates * self.n_bins * self.n_classes
-                              ).view(self.n_bins, n_candidates, self.n_bins, self.n_classes)
-        p = mass / mass.sum(-1, keepdim=True).clamp(min=1e-30)
-        entropy = -(mass * torch.log(p.clamp(min=1e-30))).sum((-2, -1))  # (first's bin, second)
-        entropy[:, used] = math.inf
+        weights = weights.numpy()
+        kept = np.nonzero(weights > self.keep * weights.max())[0]
+        entropy = pair_entropy(pair_mass(self.bins[kept], self.labels[kept], first, self.n_bins, self.n_classes,
+                                         weights[kept]))
+        entropy[:, used.numpy()] = math.inf
         entropy[:, first] = math.inf
-        return float(entropy.min(1).values.sum())
+        return float(entropy.min(1).sum())
 
     def __call__(self, weights: torch.Tensor, used: torch.Tensor, score: torch.Tensor) -> torch.Tensor:
         """(Q,) candidates for episodes of weights (Q, L), given the one-step entropies `score` (Q, C)."""

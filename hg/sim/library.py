@@ -43,9 +43,9 @@ def library_readings(sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray,
     of an episode is an episode whose leaning probes swap sides. Symmetries of the world, not poses of another split:
     with them a training library reaches positions its split never holds (the held-out cells)."""
     step = 2 * span / (places - 1) if places > 1 else 0.0
-    n_directions = 1 + 2 * len(leans) + 2 * len(along_leans)
     # the same places, `shifts` more each way
     wide = candidate_requests(places + 2 * shifts, span + shifts * step, leans, along_leans)
+    n_directions = len(wide) // (places + 2 * shifts)
     full = readings(sim, labels, poses, wide).reshape(len(labels), places + 2 * shifts, n_directions)
     metres = step * 0.5 * (sim.scene.probe_y[1] - sim.scene.probe_y[0])  # one place step along the line
     swap = mirrored_directions(n_directions, len(along_leans))
