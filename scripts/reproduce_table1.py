@@ -56,6 +56,7 @@ SIDE_LEARNED = ("PCRN-FC+ from the side-picking scan (steep first pair) + wide t
                 f"rate falling to 5%, {FINAL_TOUCH_SET}")
 # the planner's library: training episodes with their moves along the line and mirror images (docs/training.md)
 PLANNER_LIBRARY = ("--library-split", "train", "--library", "32768", "--shifts", "5", "--mirror")
+PLANNER_LIBRARY_65K = tuple("65536" if arg == "32768" else arg for arg in PLANNER_LIBRARY)  # twice the poses
 ROWS = {
     "pcrn_fc": Row("PCRN-FC", paper="PCRN-FC"),
     "pcrn_nclass": Row("PCRN-N-class", paper="PCRN-N-class"),
@@ -199,6 +200,9 @@ ROWS = {
         "across the line alike (beyond the paper)"),
     "planner": Row("greedy information-gain planner over training episodes (moved along the line and mirrored), "
                    "Bayes classifier, no learning (beyond the paper)", learned=False, planner=PLANNER_LIBRARY),
+    "planner65k": Row("greedy information-gain planner over twice as many training episodes (65536, moved along the "
+                      "line and mirrored), Bayes classifier, no learning (beyond the paper)", learned=False,
+                      planner=PLANNER_LIBRARY_65K),
     "pcrn_fc_imitate_planner_final_mirror": Row(
         "PCRN-FC+ copying the greedy planner for 8000 steps, then the hybrid rule + wide touch set, std shrinking to a "
         f"tenth, 16000 steps, learning rate falling to 5%, {FINAL_TOUCH_SET}, both touch sets reading an episode and "
