@@ -245,6 +245,17 @@ ROWS = {
         "many training episodes (65536, with their shifts and mirror images) added to every prediction (beyond the "
         "paper)",
         scores="pcrn_fc_candidates_readings_only_imitate_planner_final_mirror"),
+    "pcrn_fc_candidates_readings_only_imitate_planner65k_final_mirror": Row(
+        "PCRN-FC+ choosing among the greedy planner's candidate probes from what each candidate read so far alone (not "
+        "PCRN's state), never one twice, copying the planner over twice as many training episodes (65536) for 8000 "
+        "steps, then the hybrid rule + wide touch set, temperature falling to a tenth, 16000 steps, learning rate "
+        f"falling to 5%, {FINAL_TOUCH_SET}, both touch sets reading an episode and its mirror image across the line "
+        "alike (beyond the paper)"),
+    "pcrn_fc_candidates_readings_only_imitate_planner65k_final_mirror_library_namer": Row(
+        "PCRN-FC+ choosing among the greedy planner's candidate probes from what each candidate read so far alone, "
+        "copying the planner over 65536 training episodes (the trained models of the row without the namer), with its "
+        "namer over the same library added to every prediction (beyond the paper)",
+        scores="pcrn_fc_candidates_readings_only_imitate_planner65k_final_mirror"),
     "pcrn_fc_candidates_readings_only_along_line_classifier_imitate_planner_final_mirror": Row(
         "PCRN-FC+ choosing among the greedy planner's candidate probes from what each candidate read so far alone (not "
         "PCRN's state), never one twice, copying the planner for 8000 steps, then the hybrid rule + wide touch set + "
