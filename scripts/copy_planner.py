@@ -17,10 +17,18 @@ If `copy` keeps most of the planner's accuracy over `fixed`, a location network 
 training (docs/training.md, Next (1)); if not, the planner's choices are not a function of the touches that its
 episodes teach. The library and the scored episodes are read in ideal mode unless --mode arm.
 
+With --dagger R the copy is also taught on the states it reaches itself (DAgger): R times it probes
+--dagger-episodes fresh training episodes, drawing its choices, the planner names its own pick at every state they
+reach (`probe_episodes(advice=)`), and the network is fitted again on the teacher's states and all of those. Why:
+the teacher's episodes only hold the states the planner reaches, and a copy that strays once is in states no
+teacher episode taught; the copy, not its teacher, is what falls short after 5 probes (docs/training.md).
+
     .venv/bin/python scripts/copy_planner.py --teacher data/planner/train_s10.npz data/planner/train_s20.npz
 
 Last line: JSON {"copy" | "copy_sampled" | "fixed" | "random" [| "planner"]: {"accuracy": [after probe 1..N], ...},
-"top1": .., "train_ce": .., "teacher_episodes": .., "held_out": .., "episodes": .., ...}.
+"top1": .., "train_ce": .., "teacher_episodes": .., "held_out": .., "episodes": .., "split": .., ...
+[, "dagger": [{"round", "samples", "advice_match", "top1", "train_ce", "copy_sampled": accuracy} per round]]};
+"copy" and "copy_sampled" are the last fitted network's.
 """
 from __future__ import annotations
 
@@ -39,7 +47,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "scripts"))
 
 from hg.lightning.data import EvalEpisodes, load_teacher, teacher_meta  # noqa: E402
-from hg.sim import PoseRegions, ProbeSimulator, candidate_requests  # noqa: E402
+from hg.sim import PoseRegions, ProbeSimulator, candidate_requests, sample_episodes  # noqa: E402
 from hg.sim.library import MISS, readings, teacher_library  # noqa: E402
 from planner_ceiling import CHUNK, cell_matrix, fixed_sequence, probe_episodes, summary  # noqa: E402
 
@@ -58,16 +66,20 @@ class BayesNamer:
         self.cells = cell_matrix(bins, labels, self.n_bins, n_classes)
         self.library, self.labels = torch.from_numpy(readings_.T.copy()), torch.from_numpy(labels)
 
-    def probe(self, query: np.ndarray, n_probes: int, choose) -> tuple[np.ndarray, np.ndarray]:
+    def probe(self, query: np.ndarray, n_probes: int, choose, advise: bool = False) -> tuple[np.ndarray, ...]:
         """(E, N) candidates probed and classes named after each probe, for episodes whose readings of every
         candidate are `query` (E, C): probe_episodes in chunks; choose(k, used, query) as there (None: the planner),
-        given the chunk's rows of `query`, or an (E, N) array of the candidates already chosen."""
+        given the chunk's rows of `query`, or an (E, N) array of the candidates already chosen. With `advise`, also
+        (E, N) the planner's own pick at every state the episodes reached (slow: the planner's cost)."""
         out = []
         for i in range(0, len(query), CHUNK):
             rows = slice(i, min(i + CHUNK, len(query)))
             pick = fixed_choices(torch.from_numpy(choose[rows])) if isinstance(choose, np.ndarray) else choose
-            out.append(probe_episodes(torch.from_numpy(query[rows]), self.library, self.cells, self.labels, n_probes,
-                                      self.n_bins, self.n_classes, self.meta["sigma"], self.meta["mismatch"], pick))
+            advice = [] if advise else None
+            chosen, named = probe_episodes(torch.from_numpy(query[rows]), self.library, self.cells, self.labels,
+                                           n_probes, self.n_bins, self.n_classes, self.meta["sigma"],
+                                           self.meta["mismatch"], pick, advice=advice)
+            out.append((chosen, named) + ((torch.stack(advice, 1).numpy(),) if advise else ()))
         return tuple(map(np.concatenate, zip(*out)))
 
 
@@ -85,16 +97,17 @@ def state(used: torch.Tensor, query: torch.Tensor, k: int, n_probes: int, probe_
     return torch.cat([used.float(), touched.float(), distance, step], 1)
 
 
-def teacher_samples(chosen: torch.Tensor, query: torch.Tensor, n_probes: int, probe_length: float
-                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Every (state, probed so far, teacher's next candidate) of the teacher's episodes, (E * N, ...)."""
+def teacher_samples(chosen: torch.Tensor, query: torch.Tensor, n_probes: int, probe_length: float,
+                    targets: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every (state, probed so far, teacher's next candidate) of episodes that probed `chosen` (E, N), (E * N, ...):
+    the teacher's own episodes, or with `targets` (E, N) the planner's picks at the states another policy reached."""
     used = torch.zeros(query.shape, dtype=torch.bool)
     rows, states, masks = torch.arange(len(query)), [], []
     for k in range(n_probes):
         states.append(state(used, query, k, n_probes, probe_length))
         masks.append(used.clone())
         used[rows, chosen[:, k]] = True
-    return torch.cat(states), torch.cat(masks), chosen.T.reshape(-1)
+    return torch.cat(states), torch.cat(masks), (chosen if targets is None else targets).T.reshape(-1)
 
 
 def fit(states: torch.Tensor, masks: torch.Tensor, targets: torch.Tensor, steps: int, hidden: int, seed: int
@@ -138,19 +151,24 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--teacher", nargs="+", required=True, help="teacher files (planner_ceiling.py --save-rollouts)")
     parser.add_argument("--held-out", type=float, default=0.125, help="share of the teacher's episodes kept for top-1")
-    parser.add_argument("--episodes", type=int, default=2048, help="the table's test episodes scored (the first ones)")
+    parser.add_argument("--episodes", type=int, default=2048, help="the table's episodes scored (the first ones)")
+    parser.add_argument("--split", choices=["val", "test"], default="test", help="whose table episodes are scored")
     parser.add_argument("--mode", choices=["ideal", "arm"], default="ideal", help="how the scored episodes are probed")
     parser.add_argument("--library", type=int, help="library episodes (default: the teacher's)")
     parser.add_argument("--planner", type=int, default=0, help="also score the planner on this many episodes")
     parser.add_argument("--steps", type=int, default=20000)
     parser.add_argument("--hidden", type=int, default=256)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--dagger", type=int, default=0, help="rounds of teaching the copy on its own states")
+    parser.add_argument("--dagger-episodes", type=int, default=1024, help="fresh training episodes per round")
     args = parser.parse_args()
     for path in args.teacher:
         if not Path(path).is_file():
             parser.error(f"--teacher {path}: file not found (write one with planner_ceiling.py --save-rollouts)")
-    if args.steps < 1 or args.hidden < 1 or args.episodes < 1 or args.planner < 0 or not 0 < args.held_out < 1:
-        parser.error("--steps, --hidden, --episodes must be >= 1, --planner >= 0, --held-out in (0, 1)")
+    if (args.steps < 1 or args.hidden < 1 or args.episodes < 1 or args.planner < 0 or not 0 < args.held_out < 1
+            or args.dagger < 0 or args.dagger_episodes < 1):
+        parser.error("--steps, --hidden, --episodes, --dagger-episodes must be >= 1, --planner and --dagger >= 0, "
+                     "--held-out in (0, 1)")
     meta = teacher_meta(args.teacher)
     torch.set_num_threads(1)
     start = time.time()
@@ -168,7 +186,7 @@ def main() -> None:
     n_train = len(labels) - max(1, round(args.held_out * len(labels)))
 
     namer = BayesNamer(meta, sim, regions, n_classes, args.library)
-    batches = EvalEpisodes(regions, "test", args.episodes, 256, n_classes, seed=0).batches
+    batches = EvalEpisodes(regions, args.split, args.episodes, 256, n_classes, seed=0).batches
     test_labels = np.concatenate([b["labels"].numpy() for b in batches])[:args.episodes]
     test_poses = np.concatenate([b["poses"].numpy() for b in batches])[:args.episodes]
     if args.mode == "arm":
@@ -188,6 +206,29 @@ def main() -> None:
         top1 = (net(held_states).masked_fill(held_masks, -torch.inf).argmax(1) == held_targets).float().mean().item()
     print(f"fitted in {time.time() - start:.0f} s: train cross-entropy {train_ce:.3f}, held-out top-1 {top1:.3f}",
           flush=True)
+    rounds = []
+    for r in range(1, args.dagger + 1):
+        start = time.time()
+        own_labels, own_poses = sample_episodes(regions, "train", args.dagger_episodes, n_classes,
+                                                np.random.default_rng([args.seed, 7, r]))
+        own_query = readings(sim, own_labels, own_poses, candidates)
+        own_chosen, _, advice = namer.probe(own_query, n_probes, network_choice(
+            net, n_probes, probe_length, torch.Generator().manual_seed(args.seed + r)), advise=True)
+        more = teacher_samples(torch.from_numpy(own_chosen), torch.from_numpy(own_query), n_probes, probe_length,
+                               torch.from_numpy(advice))
+        states, masks, targets = (torch.cat([a, b]) for a, b in zip((states, masks, targets), more))
+        net, train_ce = fit(states, masks, targets, args.steps, args.hidden, args.seed)
+        with torch.no_grad():
+            top1 = (net(held_states).masked_fill(held_masks, -torch.inf).argmax(1) == held_targets).float().mean().item()
+        _, named = namer.probe(query, n_probes, network_choice(net, n_probes, probe_length,
+                                                               torch.Generator().manual_seed(args.seed)))
+        accuracy = (named == test_labels[:, None]).mean(0)
+        rounds.append({"round": r, "samples": len(states), "advice_match": round(float((own_chosen == advice).mean()), 4),
+                       "top1": round(top1, 4), "train_ce": round(train_ce, 4),
+                       "copy_sampled": [round(float(a), 4) for a in accuracy]})
+        print(f"DAgger round {r} ({time.time() - start:.0f} s): its own choices matched the planner's "
+              f"{rounds[-1]['advice_match']:.3f}; refitted on {len(states)} states, held-out top-1 {top1:.3f}; "
+              f"sampled copy's accuracy after each probe " + " ".join(f"{a:.3f}" for a in accuracy), flush=True)
 
     order = np.argsort(np.abs(np.linspace(-meta["span"], meta["span"], meta["places"])), kind="stable")
     runs = {"copy": (network_choice(net, n_probes, probe_length, None), len(query)),
@@ -209,7 +250,8 @@ def main() -> None:
     sim.close()
     print(json.dumps(results | {"top1": round(top1, 4), "train_ce": round(train_ce, 4), "teacher_episodes": n_train,
                                 "held_out": len(labels) - n_train, "episodes": len(query), "mode": args.mode,
-                                "library_episodes": namer.library.shape[1], "steps": args.steps, "hidden": args.hidden}))
+                                "library_episodes": namer.library.shape[1], "steps": args.steps, "hidden": args.hidden,
+                                "split": args.split} | ({"dagger": rounds} if rounds else {})))
 
 
 if __name__ == "__main__":

@@ -183,7 +183,7 @@ def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tens
                    n_probes: int, n_bins: int, n_classes: int, sigma: float, mismatch: float,
                    choose: Choose | None = None,
                    faulty: torch.Tensor | None = None, noise: SensorNoise = SensorNoise(), probe_length: float = 1.0,
-                   two_step: TwoStep | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   two_step: TwoStep | None = None, advice: list | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(Q, N) candidates probed in each episode (its readings of every candidate: `query`, (Q, C)) and the class
     named after each probe: the planner's choices, or those of `choose(k, used, query)` -> (Q,) candidate indices
     (a fixed sequence, or a network copying the planner; None: the planner's), used (Q, C) bool marking the
@@ -191,7 +191,9 @@ def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tens
     library: (C, L) readings. With a faulty sensor, `faulty` (N, Q, C) holds what probe k reads from each candidate
     (an independent draw of the sensor's faults per probe) and `noise` its fault rates: the library is weighed with
     the sensor's model (log_likelihood), and the planner may probe a candidate again, since a second reading can
-    outvote a corrupted first one. With `two_step`, the planner looks two probes ahead for its first probes."""
+    outvote a corrupted first one. With `two_step`, the planner looks two probes ahead for its first probes. With
+    `advice` (a list), the planner's own pick at every state the episodes reach is appended to it, (Q,) per probe,
+    also where `choose` decides: what it would have probed there, to teach a copy on the copy's own states."""
     log_w = torch.zeros(len(query), library.shape[1])
     weights = torch.ones_like(log_w)  # exp(log_w) relative to each episode's most likely library episode
     used = torch.zeros(query.shape, dtype=torch.bool)
@@ -199,11 +201,14 @@ def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tens
     one_hot = torch.nn.functional.one_hot(labels, n_classes).float()
     for k in range(n_probes):
         c = None if choose is None else choose(k, used, query)
-        if c is None:
+        if c is None or advice is not None:
             score = expected_entropy(cells, weights, n_bins, n_classes, noise)
             if faulty is None:  # in ideal mode a repeated probe reads the same
                 score = score.masked_fill(used, math.inf)
-            c = score.argmin(1) if two_step is None or k >= two_step.probes else two_step(weights, used, score)
+            pick = score.argmin(1) if two_step is None or k >= two_step.probes else two_step(weights, used, score)
+            if advice is not None:
+                advice.append(pick)
+            c = pick if c is None else c
         used[rows, c] = True
         chosen.append(c)
         read = query[rows, c] if faulty is None else faulty[k, rows, c]

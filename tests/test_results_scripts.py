@@ -358,6 +358,10 @@ def test_planner_probes_where_the_reading_tells_the_class_and_runs_on_real_probe
     fixed, named = planner.probe_episodes(queries, library.T, cells, labels, 2, 12, 2, 0.005, 1e-3,
                                           planner.fixed_sequence(np.array([0, 2])))
     assert fixed.tolist() == [[0, 2], [0, 2]] and named[:, 0].tolist() == [0, 0]  # ties: the first class
+    advice = []  # what the planner would have probed at the states the fixed sequence reached
+    followed, _ = planner.probe_episodes(queries, library.T, cells, labels, 2, 12, 2, 0.005, 1e-3,
+                                         planner.fixed_sequence(np.array([0, 2])), advice=advice)
+    assert followed.tolist() == fixed.tolist() and [a.tolist() for a in advice] == [[1, 1], [1, 1]]
     # a faulty sensor: the first reading of the telling probe is a touch reported as a miss; the planner weighing
     # with the sensor's model probes it again, and the second reading outvotes the first
     faulty = torch.tensor([[[0.1, planner.MISS, 0.3]], [[0.1, 0.2, 0.3]]])
@@ -475,6 +479,13 @@ def test_copy_planner_learns_a_teacher_s_candidate_sequence_and_probes_with_it(t
     assert result["top1"] == 1.0 and result["held_out"] == 8  # a fixed sequence is a function of the probe index
     assert result["copy"]["places"] == 3 and result["copy"]["tilt_deg"] == pytest.approx(2 / 3 * 26.57, abs=0.1)  # lean 1.0: 26.6 degrees
     assert result["fixed"]["tilt_deg"] == 0 and len(result["random"]["accuracy"]) == 3
+    # taught on its own states too: the planner's picks there, not the scan's, join the teacher's 56 x 3 states
+    dagger = run("copy_planner", "--teacher", str(tmp_path / "scan.npz"), "--episodes", "32", "--steps", "300",
+                 "--hidden", "32", "--split", "val", "--dagger", "1", "--dagger-episodes", "16")
+    assert dagger.returncode == 0, dagger.stderr[-2000:]
+    rounds = json.loads(dagger.stdout.strip().splitlines()[-1])["dagger"]
+    assert rounds[0]["samples"] == 56 * 3 + 16 * 3 and len(rounds[0]["copy_sampled"]) == 3
+    assert 0 <= rounds[0]["advice_match"] < 1  # the planner is no fixed scan
     off = np.tile(sequence, (64, 1, 1))
     off[:, 0, 0] = 0.1  # not one of the candidates
     planner.save_rollouts(tmp_path / "off.npz", labels, poses, off, meta)
