@@ -22,12 +22,17 @@ With --dagger R the copy is also taught on the states it reaches itself (DAgger)
 reach (`probe_episodes(advice=)`), and the network is fitted again on the teacher's states and all of those. Why:
 the teacher's episodes only hold the states the planner reaches, and a copy that strays once is in states no
 teacher episode taught; the copy, not its teacher, is what falls short after 5 probes (docs/training.md).
+With --soft T [T ...] the teacher's own states are also read by the planner again, and one copy per T learns its
+ranking of every candidate there, softmax(-(entropy - least) / T), instead of its pick alone (distillation): the
+planner's picks are close calls between candidates (a held-out top-1 of ~0.5), so its pick alone teaches little of
+what the second best is worth.
 
     .venv/bin/python scripts/copy_planner.py --teacher data/planner/train_s10.npz data/planner/train_s20.npz
 
 Last line: JSON {"copy" | "copy_sampled" | "fixed" | "random" [| "planner"]: {"accuracy": [after probe 1..N], ...},
 "top1": .., "train_ce": .., "teacher_episodes": .., "held_out": .., "episodes": .., "split": .., ...
-[, "dagger": [{"round", "samples", "advice_match", "top1", "train_ce", "copy_sampled": accuracy} per round]]};
+[, "dagger": [{"round", "samples", "advice_match", "top1", "train_ce", "copy_sampled": accuracy} per round]]
+[, "soft": [{"temperature", "top1", "train_ce", "copy", "copy_sampled": accuracy} per T]]};
 "copy" and "copy_sampled" are the last fitted network's.
 """
 from __future__ import annotations
@@ -70,7 +75,8 @@ class BayesNamer:
         """(E, N) candidates probed and classes named after each probe, for episodes whose readings of every
         candidate are `query` (E, C): probe_episodes in chunks; choose(k, used, query) as there (None: the planner),
         given the chunk's rows of `query`, or an (E, N) array of the candidates already chosen. With `advise`, also
-        (E, N) the planner's own pick at every state the episodes reached (slow: the planner's cost)."""
+        (E, N, C) the planner's expected entropy of every candidate at every state the episodes reached (its pick
+        is the argmin; slow: the planner's cost)."""
         out = []
         for i in range(0, len(query), CHUNK):
             rows = slice(i, min(i + CHUNK, len(query)))
@@ -112,7 +118,8 @@ def teacher_samples(chosen: torch.Tensor, query: torch.Tensor, n_probes: int, pr
 
 def fit(states: torch.Tensor, masks: torch.Tensor, targets: torch.Tensor, steps: int, hidden: int, seed: int
         ) -> tuple[nn.Module, float]:
-    """An MLP's logits over the candidates, trained by cross-entropy on the teacher's choices (probed ones masked)."""
+    """An MLP's logits over the candidates, trained by cross-entropy on the teacher's choices (probed ones masked):
+    targets (S,) candidate indices, or (S, C) probabilities over the candidates (0 on the probed ones)."""
     torch.manual_seed(seed)
     net = nn.Sequential(nn.Linear(states.shape[1], hidden), nn.ELU(), nn.Linear(hidden, hidden), nn.ELU(),
                         nn.Linear(hidden, masks.shape[1]))
@@ -121,7 +128,11 @@ def fit(states: torch.Tensor, masks: torch.Tensor, targets: torch.Tensor, steps:
     for _ in range(steps):
         rows = torch.randint(0, len(states), (256,), generator=generator)
         logits = net(states[rows]).masked_fill(masks[rows], -torch.inf)
-        loss = nn.functional.cross_entropy(logits, targets[rows])
+        if targets.dim() == 1:
+            loss = nn.functional.cross_entropy(logits, targets[rows])
+        else:  # 0 log 0 on the probed candidates is 0
+            p = targets[rows]
+            loss = -torch.where(p > 0, p * logits.log_softmax(1), 0.0).sum(1).mean()
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -161,14 +172,16 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--dagger", type=int, default=0, help="rounds of teaching the copy on its own states")
     parser.add_argument("--dagger-episodes", type=int, default=1024, help="fresh training episodes per round")
+    parser.add_argument("--soft", type=float, nargs="*", default=[],
+                        help="temperatures (nats) of copies taught the planner's ranking of every candidate")
     args = parser.parse_args()
     for path in args.teacher:
         if not Path(path).is_file():
             parser.error(f"--teacher {path}: file not found (write one with planner_ceiling.py --save-rollouts)")
     if (args.steps < 1 or args.hidden < 1 or args.episodes < 1 or args.planner < 0 or not 0 < args.held_out < 1
-            or args.dagger < 0 or args.dagger_episodes < 1):
+            or args.dagger < 0 or args.dagger_episodes < 1 or any(t <= 0 for t in args.soft)):
         parser.error("--steps, --hidden, --episodes, --dagger-episodes must be >= 1, --planner and --dagger >= 0, "
-                     "--held-out in (0, 1)")
+                     "--held-out in (0, 1), --soft > 0")
     meta = teacher_meta(args.teacher)
     torch.set_num_threads(1)
     start = time.time()
@@ -206,6 +219,30 @@ def main() -> None:
         top1 = (net(held_states).masked_fill(held_masks, -torch.inf).argmax(1) == held_targets).float().mean().item()
     print(f"fitted in {time.time() - start:.0f} s: train cross-entropy {train_ce:.3f}, held-out top-1 {top1:.3f}",
           flush=True)
+    soft = []
+    if args.soft:
+        start = time.time()
+        _, _, scores = namer.probe(teacher_query[:n_train].numpy(), n_probes, chosen[:n_train].numpy(), advise=True)
+        entropy = torch.from_numpy(scores).transpose(0, 1).reshape(-1, scores.shape[-1])  # teacher_samples' order
+        replayed = (entropy.argmin(1) == targets).float().mean().item()
+        print(f"the planner read the teacher's {n_train} episodes again in {time.time() - start:.0f} s: its pick is "
+              f"the teacher's {replayed:.3f} of the time", flush=True)
+        for temperature in args.soft:
+            start = time.time()
+            ranking = torch.softmax(-(entropy - entropy.min(1, keepdim=True).values) / temperature, 1)
+            soft_net, soft_ce = fit(states, masks, ranking, args.steps, args.hidden, args.seed)
+            with torch.no_grad():
+                soft_top1 = (soft_net(held_states).masked_fill(held_masks, -torch.inf).argmax(1)
+                             == held_targets).float().mean().item()
+            found = {"temperature": temperature, "top1": round(soft_top1, 4), "train_ce": round(soft_ce, 4),
+                     "replayed_match": round(replayed, 4)}
+            for name, generator in (("copy", None), ("copy_sampled", torch.Generator().manual_seed(args.seed))):
+                _, named = namer.probe(query, n_probes, network_choice(soft_net, n_probes, probe_length, generator))
+                found[name] = [round(float(a), 4) for a in (named == test_labels[:, None]).mean(0)]
+            soft.append(found)
+            print(f"soft copy, T={temperature} ({time.time() - start:.0f} s): held-out top-1 {soft_top1:.3f}; accuracy "
+                  "after each probe " + " ".join(f"{a:.3f}" for a in found["copy"]) + "; sampled "
+                  + " ".join(f"{a:.3f}" for a in found["copy_sampled"]), flush=True)
     rounds = []
     for r in range(1, args.dagger + 1):
         start = time.time()
@@ -214,6 +251,7 @@ def main() -> None:
         own_query = readings(sim, own_labels, own_poses, candidates)
         own_chosen, _, advice = namer.probe(own_query, n_probes, network_choice(
             net, n_probes, probe_length, torch.Generator().manual_seed(args.seed + r)), advise=True)
+        advice = advice.argmin(-1)  # the planner's pick
         more = teacher_samples(torch.from_numpy(own_chosen), torch.from_numpy(own_query), n_probes, probe_length,
                                torch.from_numpy(advice))
         states, masks, targets = (torch.cat([a, b]) for a, b in zip((states, masks, targets), more))
@@ -251,7 +289,8 @@ def main() -> None:
     print(json.dumps(results | {"top1": round(top1, 4), "train_ce": round(train_ce, 4), "teacher_episodes": n_train,
                                 "held_out": len(labels) - n_train, "episodes": len(query), "mode": args.mode,
                                 "library_episodes": namer.library.shape[1], "steps": args.steps, "hidden": args.hidden,
-                                "split": args.split} | ({"dagger": rounds} if rounds else {})))
+                                "split": args.split} | ({"dagger": rounds} if rounds else {})
+                     | ({"soft": soft} if soft else {})))
 
 
 if __name__ == "__main__":

@@ -192,8 +192,9 @@ def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tens
     (an independent draw of the sensor's faults per probe) and `noise` its fault rates: the library is weighed with
     the sensor's model (log_likelihood), and the planner may probe a candidate again, since a second reading can
     outvote a corrupted first one. With `two_step`, the planner looks two probes ahead for its first probes. With
-    `advice` (a list), the planner's own pick at every state the episodes reach is appended to it, (Q,) per probe,
-    also where `choose` decides: what it would have probed there, to teach a copy on the copy's own states."""
+    `advice` (a list), the planner's view of every state the episodes reach is appended to it, also where `choose`
+    decides: (Q, C) per probe, the class entropy each candidate would leave (inf where probed in ideal mode), whose
+    argmin is its pick one probe ahead; to teach a copy on the copy's own states, or on the planner's ranking."""
     log_w = torch.zeros(len(query), library.shape[1])
     weights = torch.ones_like(log_w)  # exp(log_w) relative to each episode's most likely library episode
     used = torch.zeros(query.shape, dtype=torch.bool)
@@ -207,7 +208,7 @@ def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tens
                 score = score.masked_fill(used, math.inf)
             pick = score.argmin(1) if two_step is None or k >= two_step.probes else two_step(weights, used, score)
             if advice is not None:
-                advice.append(pick)
+                advice.append(score)
             c = pick if c is None else c
         used[rows, c] = True
         chosen.append(c)

@@ -361,7 +361,8 @@ def test_planner_probes_where_the_reading_tells_the_class_and_runs_on_real_probe
     advice = []  # what the planner would have probed at the states the fixed sequence reached
     followed, _ = planner.probe_episodes(queries, library.T, cells, labels, 2, 12, 2, 0.005, 1e-3,
                                          planner.fixed_sequence(np.array([0, 2])), advice=advice)
-    assert followed.tolist() == fixed.tolist() and [a.tolist() for a in advice] == [[1, 1], [1, 1]]
+    assert followed.tolist() == fixed.tolist() and [a.argmin(1).tolist() for a in advice] == [[1, 1], [1, 1]]
+    assert advice[0].isfinite().all() and (advice[1][:, 0] == np.inf).all()  # what was probed is not advised again
     # a faulty sensor: the first reading of the telling probe is a touch reported as a miss; the planner weighing
     # with the sensor's model probes it again, and the second reading outvotes the first
     faulty = torch.tensor([[[0.1, planner.MISS, 0.3]], [[0.1, 0.2, 0.3]]])
@@ -486,6 +487,12 @@ def test_copy_planner_learns_a_teacher_s_candidate_sequence_and_probes_with_it(t
     rounds = json.loads(dagger.stdout.strip().splitlines()[-1])["dagger"]
     assert rounds[0]["samples"] == 56 * 3 + 16 * 3 and len(rounds[0]["copy_sampled"]) == 3
     assert 0 <= rounds[0]["advice_match"] < 1  # the planner is no fixed scan
+    soft = run("copy_planner", "--teacher", str(tmp_path / "scan.npz"), "--episodes", "32", "--steps", "300",
+               "--hidden", "32", "--soft", "0.05")
+    assert soft.returncode == 0, soft.stderr[-2000:]
+    found = json.loads(soft.stdout.strip().splitlines()[-1])["soft"][0]
+    assert found["temperature"] == 0.05 and len(found["copy"]) == len(found["copy_sampled"]) == 3
+    assert found["replayed_match"] < 1  # taught the planner's ranking, not the scan it was given
     off = np.tile(sequence, (64, 1, 1))
     off[:, 0, 0] = 0.1  # not one of the candidates
     planner.save_rollouts(tmp_path / "off.npz", labels, poses, off, meta)
