@@ -215,8 +215,18 @@ def main() -> None:
     net, train_ce = fit(states, masks, targets, args.steps, args.hidden, args.seed)
     held_states, held_masks, held_targets = teacher_samples(chosen[n_train:], teacher_query[n_train:], n_probes,
                                                             probe_length)
-    with torch.no_grad():
-        top1 = (net(held_states).masked_fill(held_masks, -torch.inf).argmax(1) == held_targets).float().mean().item()
+
+    def held_out_top1(net: nn.Module) -> float:
+        """How often the net's most likely candidate is the teacher's on the held-out teacher episodes."""
+        with torch.no_grad():
+            return (net(held_states).masked_fill(held_masks, -torch.inf).argmax(1) == held_targets).float().mean().item()
+
+    def scored(net: nn.Module, generator: torch.Generator | None) -> list[float]:
+        """Accuracy after each probe on the scored episodes, the net choosing (drawing with `generator`)."""
+        _, named = namer.probe(query, n_probes, network_choice(net, n_probes, probe_length, generator))
+        return [round(float(a), 4) for a in (named == test_labels[:, None]).mean(0)]
+
+    top1 = held_out_top1(net)
     print(f"fitted in {time.time() - start:.0f} s: train cross-entropy {train_ce:.3f}, held-out top-1 {top1:.3f}",
           flush=True)
     soft = []
@@ -231,14 +241,10 @@ def main() -> None:
             start = time.time()
             ranking = torch.softmax(-(entropy - entropy.min(1, keepdim=True).values) / temperature, 1)
             soft_net, soft_ce = fit(states, masks, ranking, args.steps, args.hidden, args.seed)
-            with torch.no_grad():
-                soft_top1 = (soft_net(held_states).masked_fill(held_masks, -torch.inf).argmax(1)
-                             == held_targets).float().mean().item()
+            soft_top1 = held_out_top1(soft_net)
             found = {"temperature": temperature, "top1": round(soft_top1, 4), "train_ce": round(soft_ce, 4),
-                     "replayed_match": round(replayed, 4)}
-            for name, generator in (("copy", None), ("copy_sampled", torch.Generator().manual_seed(args.seed))):
-                _, named = namer.probe(query, n_probes, network_choice(soft_net, n_probes, probe_length, generator))
-                found[name] = [round(float(a), 4) for a in (named == test_labels[:, None]).mean(0)]
+                     "replayed_match": round(replayed, 4), "copy": scored(soft_net, None),
+                     "copy_sampled": scored(soft_net, torch.Generator().manual_seed(args.seed))}
             soft.append(found)
             print(f"soft copy, T={temperature} ({time.time() - start:.0f} s): held-out top-1 {soft_top1:.3f}; accuracy "
                   "after each probe " + " ".join(f"{a:.3f}" for a in found["copy"]) + "; sampled "
@@ -256,14 +262,10 @@ def main() -> None:
                                torch.from_numpy(advice))
         states, masks, targets = (torch.cat([a, b]) for a, b in zip((states, masks, targets), more))
         net, train_ce = fit(states, masks, targets, args.steps, args.hidden, args.seed)
-        with torch.no_grad():
-            top1 = (net(held_states).masked_fill(held_masks, -torch.inf).argmax(1) == held_targets).float().mean().item()
-        _, named = namer.probe(query, n_probes, network_choice(net, n_probes, probe_length,
-                                                               torch.Generator().manual_seed(args.seed)))
-        accuracy = (named == test_labels[:, None]).mean(0)
+        top1 = held_out_top1(net)
+        accuracy = scored(net, torch.Generator().manual_seed(args.seed))
         rounds.append({"round": r, "samples": len(states), "advice_match": round(float((own_chosen == advice).mean()), 4),
-                       "top1": round(top1, 4), "train_ce": round(train_ce, 4),
-                       "copy_sampled": [round(float(a), 4) for a in accuracy]})
+                       "top1": round(top1, 4), "train_ce": round(train_ce, 4), "copy_sampled": accuracy})
         print(f"DAgger round {r} ({time.time() - start:.0f} s): its own choices matched the planner's "
               f"{rounds[-1]['advice_match']:.3f}; refitted on {len(states)} states, held-out top-1 {top1:.3f}; "
               f"sampled copy's accuracy after each probe " + " ".join(f"{a:.3f}" for a in accuracy), flush=True)

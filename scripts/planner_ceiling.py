@@ -206,10 +206,10 @@ def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tens
             score = expected_entropy(cells, weights, n_bins, n_classes, noise)
             if faulty is None:  # in ideal mode a repeated probe reads the same
                 score = score.masked_fill(used, math.inf)
-            pick = score.argmin(1) if two_step is None or k >= two_step.probes else two_step(weights, used, score)
             if advice is not None:
                 advice.append(score)
-            c = pick if c is None else c
+            if c is None:
+                c = score.argmin(1) if two_step is None or k >= two_step.probes else two_step(weights, used, score)
         used[rows, c] = True
         chosen.append(c)
         read = query[rows, c] if faulty is None else faulty[k, rows, c]
