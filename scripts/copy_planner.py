@@ -54,7 +54,7 @@ sys.path.insert(0, str(ROOT / "scripts"))
 from hg.lightning.data import EvalEpisodes, load_teacher, teacher_meta  # noqa: E402
 from hg.sim import PoseRegions, ProbeSimulator, candidate_requests, sample_episodes  # noqa: E402
 from hg.sim.library import MISS, readings, teacher_library  # noqa: E402
-from planner_ceiling import CHUNK, cell_matrix, fixed_sequence, probe_episodes, summary  # noqa: E402
+from planner_ceiling import CHUNK, cell_matrix, fixed_sequence, probe_episodes, random_choice, summary  # noqa: E402
 
 
 class BayesNamer:
@@ -148,13 +148,6 @@ def network_choice(net: nn.Module, n_probes: int, probe_length: float, generator
         if generator is None:
             return logits.argmax(1)
         return torch.multinomial(torch.softmax(logits, 1), 1, generator=generator)[:, 0]
-    return choose
-
-
-def random_choice(generator: torch.Generator):
-    """A `choose` for probe_episodes: an unprobed candidate at random."""
-    def choose(k: int, used: torch.Tensor, query: torch.Tensor) -> torch.Tensor:
-        return torch.multinomial((~used).float(), 1, generator=generator)[:, 0]
     return choose
 
 

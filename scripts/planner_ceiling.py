@@ -15,9 +15,12 @@ With the library drawn from the scored split's own poses (`--library-split val`,
 held-out positions, as the nearest-neighbour ceilings have: a reading of what adaptive probes can say, not a
 classifier of ours. With `--library-split train` it is a planner that could be used as it is (no held-out pose
 enters it). `--fixed` scores the straight centre-out scan over the same places with the same weighing, to set the
-planner against the scans' ceilings. The library is read in ideal mode; `--mode arm` probes the scored episodes with
-the arm, whose achieved probes stray from the requested ones (every candidate is read up front, as the arm would
-read the chosen one), and `--table-episodes` scores the very episodes the tables score. Minutes on one core.
+planner against the scans' ceilings, and `--random` unprobed candidates drawn at random (with --seed): the same
+namer reading probes placed by no one, the baselines of a policy named by this namer (`--no-planner`: those alone;
+`--library-seed 10`: the library a teacher file of --seed 10 was planned over, hg.sim.library.teacher_library).
+The library is read in ideal mode; `--mode arm` probes the scored episodes with the arm, whose achieved probes stray
+from the requested ones (every candidate is read up front, as the arm would read the chosen one), and
+`--table-episodes` scores the very episodes the tables score. Minutes on one core.
 `--best-first-two` also scores the planner with its first two probes chosen by trying every pair on the library
 (binned readings, in-sample) for the fewest errors after two probes, the greedy planner's after: how much the
 greedy choice leaves on the table after 2 probes. `--two-step PROBES` also scores the planner looking two probes
@@ -34,7 +37,7 @@ whose episodes are not training episodes.
     .venv/bin/python scripts/planner_ceiling.py --library-split train --split train --library 32768 --shifts 5 \
         --mirror --episodes 3072 --seed 10 --save-rollouts data/planner/train_s10.npz   # a teacher (model.imitate)
 
-Last line: JSON {"planner" [and "fixed", "best_first_two", "two_step"]: {"accuracy": [after probe 1, ..., N],
+Last line: JSON {"planner" [and "fixed", "random", "best_first_two", "two_step"]: {"accuracy": [after probe 1, ..., N],
 "touches": .., "touches_first_half": .., "tilt_deg": .., "leaning_towards_object": .., "leaning_along_line": ..,
 "places": .., "repeats": ..}, "library": .., "library_split": .., "shifts": .., "mirror": .., "library_episodes": ..,
 "noise": .., "episodes": .., "split": .., "mode": .., "table_episodes": .., "candidates": .., "along_leans": .. [,
@@ -224,6 +227,13 @@ def fixed_sequence(sequence: np.ndarray) -> Choose:
     return lambda k, used, query: torch.full((len(query),), int(sequence[k]))
 
 
+def random_choice(generator: torch.Generator) -> Choose:
+    """A `choose` for probe_episodes: an unprobed candidate at random."""
+    def choose(k: int, used: torch.Tensor, query: torch.Tensor) -> torch.Tensor:
+        return torch.multinomial((~used).float(), 1, generator=generator)[:, 0]
+    return choose
+
+
 def first_two(rule: dict, width: float, n_bins: int) -> Choose:
     """A `choose` for probe_episodes: best_first_two's rule for the first two probes, the planner's after."""
     def choose(k: int, used: torch.Tensor, query: torch.Tensor) -> torch.Tensor | None:
@@ -295,6 +305,10 @@ def main() -> None:
     parser.add_argument("--mismatch", type=float, default=1e-3, help="weight kept by a touch read as a miss or back")
     parser.add_argument("--bin", type=float, default=0.01, help="reading bins for the planner's entropy (m)")
     parser.add_argument("--fixed", action="store_true", help="also score the straight centre-out scan")
+    parser.add_argument("--random", action="store_true", help="also score unprobed candidates drawn at random (--seed)")
+    parser.add_argument("--no-planner", action="store_true", help="score only --fixed / --random, not the planner")
+    parser.add_argument("--library-seed", type=int, default=None,
+                        help="draw the library with this seed instead of --seed (a teacher file's seed: its library)")
     parser.add_argument("--noise", type=float, default=0.0,
                         help="sensor fault rate of the scored episodes' probes: SensorNoise(miss_prob = false_contact_prob "
                              "= rate), as reproduce_noise.py; the planner weighs with the sensor's model and may re-probe")
@@ -324,6 +338,14 @@ def main() -> None:
         parser.error(f"--noise {args.noise}: must be in [0, 1)")
     if args.two_step and (args.noise or not 0 < args.two_step < args.n_probes):
         parser.error(f"--two-step {args.two_step}: needs a fault-free sensor (no --noise) and 0 < PROBES < --n-probes")
+    if args.no_planner and (not (args.fixed or args.random) or args.save_rollouts or args.best_first_two
+                            or args.two_step):
+        parser.error("--no-planner: needs --fixed or --random, and no option that scores or saves the planner "
+                     "(--save-rollouts, --best-first-two, --two-step)")
+    if args.library_seed is not None and args.save_rollouts:
+        parser.error("--library-seed with --save-rollouts: a teacher file records one seed, its library's "
+                     "(hg.sim.library.teacher_library), so plan it with --seed alone")
+    library_seed = args.seed if args.library_seed is None else args.library_seed
     if args.best_first_two and (args.noise or args.n_probes < 2):
         parser.error("--best-first-two: needs --n-probes >= 2 and a fault-free sensor (no --noise); its rule for the "
                      "second probe reads the first's clean reading")
@@ -344,7 +366,7 @@ def main() -> None:
         query_labels, query_poses = sample_episodes(regions, args.split, args.episodes, n_classes,
                                                     np.random.default_rng(args.seed))
     labels, poses = sample_episodes(regions, args.library_split, args.library, n_classes,
-                                    np.random.default_rng(args.seed + 1))
+                                    np.random.default_rng(library_seed + 1))
     library, labels = library_readings(sim, labels, poses, args.places, args.span, args.leans, args.shifts,
                                        args.mirror, args.along_leans)
     noise = SensorNoise(miss_prob=args.noise, false_contact_prob=args.noise)
@@ -366,7 +388,8 @@ def main() -> None:
     offsets = query_poses[:, 0] - sim.scene.probe_x
     order = np.argsort(np.abs(np.linspace(-args.span, args.span, args.places)), kind="stable")
     fixed = fixed_sequence(order * (len(candidates) // args.places))  # straight down, centre out
-    runs = {"planner": (None, None)} | ({"fixed": (fixed, None)} if args.fixed else {})
+    runs = ({} if args.no_planner else {"planner": (None, None)}) | ({"fixed": (fixed, None)} if args.fixed else {}) | (
+        {"random": (random_choice(torch.Generator().manual_seed(args.seed)), None)} if args.random else {})
     if args.two_step:
         runs["two_step"] = (None, TwoStep(bins, labels, n_bins, n_classes, args.two_step))
     results = {}
@@ -393,7 +416,8 @@ def main() -> None:
               f"{r['tilt_deg']:.1f} deg, {r['places']:.1f} places ({time.time() - start:.0f} s)", flush=True)
     sim.close()
     print(json.dumps(results | {"library": args.library, "library_split": args.library_split,
-                                "shifts": args.shifts, "mirror": args.mirror, "library_episodes": len(library),
+                                "library_seed": library_seed, "shifts": args.shifts, "mirror": args.mirror,
+                                "library_episodes": len(library),
                                 "noise": args.noise, "episodes": args.episodes, "split": args.split, "mode": args.mode,
                                 "table_episodes": args.table_episodes, "candidates": len(candidates),
                                 "along_leans": args.along_leans}))

@@ -44,6 +44,10 @@ class Row:
     learned: bool = True
     encoder: str = "pcrn"
     planner: tuple[str, ...] = ()  # a row that plans instead of learning: scripts/planner_ceiling.py's library arguments
+    planned: str = "planner"  # which of planner_ceiling.py's results a planner row reports: its "planner", or probes
+    # placed by no one ("fixed": the straight scan, "random") named by the same weighing of its library
+    namer_of: str | None = None  # the row whose library namer names this row's probes: the policy's margin over
+    # them is read with that row's namer alone on both sides (the same classifier)
     scores: str | None = None  # a row that trains nothing: it scores that row's best checkpoints (same seed) as its
     # config reads them (e.g. with model.library_namer), so it runs after that row
 
@@ -57,6 +61,9 @@ SIDE_LEARNED = ("PCRN-FC+ from the side-picking scan (steep first pair) + wide t
 # the planner's library: training episodes with their moves along the line and mirror images (docs/training.md)
 PLANNER_LIBRARY = ("--library-split", "train", "--library", "32768", "--shifts", "5", "--mirror")
 PLANNER_LIBRARY_65K = tuple("65536" if arg == "32768" else arg for arg in PLANNER_LIBRARY)  # twice the poses
+# the library of the namer of the copy of the 65536-pose teachers (model.library_namer data/planner/train65k_s10.npz)
+NAMER_65K = "pcrn_fc_candidates_readings_only_imitate_planner65k_final_mirror_library_namer"
+NAMER_65K_LIBRARY = (*PLANNER_LIBRARY_65K, "--library-seed", "10", "--no-planner")
 ROWS = {
     "pcrn_fc": Row("PCRN-FC", paper="PCRN-FC"),
     "pcrn_nclass": Row("PCRN-N-class", paper="PCRN-N-class"),
@@ -203,6 +210,13 @@ ROWS = {
     "planner65k": Row("greedy information-gain planner over twice as many training episodes (65536, moved along the "
                       "line and mirrored), Bayes classifier, no learning (beyond the paper)", learned=False,
                       planner=PLANNER_LIBRARY_65K),
+    "candidate_scan_namer65k": Row("straight centre-out scan of the greedy planner's candidate places, named by the "
+                                   "namer of the copy of the 65536-pose teachers alone, no learning (beyond the paper)",
+                                   learned=False, planner=(*NAMER_65K_LIBRARY, "--fixed"), planned="fixed",
+                                   namer_of=NAMER_65K),
+    "random_candidates_namer65k": Row("random candidates of the greedy planner, named by the namer of the copy of the "
+                                      "65536-pose teachers alone, no learning (beyond the paper)", learned=False,
+                                      planner=(*NAMER_65K_LIBRARY, "--random"), planned="random", namer_of=NAMER_65K),
     "pcrn_fc_imitate_planner_final_mirror": Row(
         "PCRN-FC+ copying the greedy planner for 8000 steps, then the hybrid rule + wide touch set, std shrinking to a "
         f"tenth, 16000 steps, learning rate falling to 5%, {FINAL_TOUCH_SET}, both touch sets reading an episode and "
@@ -315,7 +329,7 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out_dir: Path, steps: in
                                     f"{seed} first")
         checkpoint = ROOT / json.loads(source_run.read_text())["best_checkpoint"]
     if ROWS[row].planner:
-        facts = plan_and_test(ROWS[row].planner, seed, test_episodes)
+        facts = plan_and_test(ROWS[row].planner, seed, test_episodes, planned=ROWS[row].planned)
     else:
         facts = fit_and_test(ROOT / config_of(row), seed, runs_dir / name, eval_seed=EVAL_SEED,
                              test_episodes=test_episodes, steps=steps, checkpoint=checkpoint)
@@ -326,11 +340,12 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out_dir: Path, steps: in
     write_atomic(out_dir / "runs" / f"{name}.json", json.dumps(result, indent=1) + "\n")
 
 
-def plan_and_test(library: tuple[str, ...], seed: int, test_episodes: int, extra: tuple[str, ...] = ()) -> dict:
+def plan_and_test(library: tuple[str, ...], seed: int, test_episodes: int, extra: tuple[str, ...] = (),
+                  planned: str = "planner") -> dict:
     """A planner row's run: scripts/planner_ceiling.py with its `library` (drawn with `seed`) on the test episodes
-    every row meets, in arm mode (`extra`: more of its arguments, e.g. --noise); the facts fit_and_test returns, with
-    the planner's wall time (library and planning) as the training time. Nothing is learned, so there is no
-    checkpoint and no validation score."""
+    every row meets, in arm mode (`extra`: more of its arguments, e.g. --noise); the facts fit_and_test returns for
+    its result `planned`, with the script's wall time (library and planning) as the training time. Nothing is
+    learned, so there is no checkpoint and no validation score."""
     from hg.lightning.data import ProbeDataModule
     from hg.lightning.experiment import test_fingerprint
 
@@ -340,7 +355,7 @@ def plan_and_test(library: tuple[str, ...], seed: int, test_episodes: int, extra
     proc = subprocess.run([sys.executable, *command], capture_output=True, text=True, cwd=ROOT)
     if proc.returncode:
         raise RuntimeError(f"{' '.join(command)} failed (exit {proc.returncode}): {proc.stderr[-2000:]}")
-    planned = json.loads(proc.stdout.strip().splitlines()[-1])["planner"]
+    planned = json.loads(proc.stdout.strip().splitlines()[-1])[planned]
     data = ProbeDataModule(test_episodes=test_episodes, eval_seed=EVAL_SEED)
     return {"command": " ".join(command), "max_steps": 0, "resumed_from_step": 0, "accuracy": planned["accuracy"],
             "accuracy_mean_action": None, "best_val_acc": None, "best_checkpoint": None,
@@ -369,8 +384,8 @@ def summarise(runs: dict[str, list[dict]]) -> dict[str, dict]:
     for row, rs in runs.items():
         # a planner row names its whole command (the library's arguments), a trained row its config
         entry = {"label": ROWS[row].label, "config": rs[0].get("command", config_of(row)), "seeds": [r["seed"] for r in rs]}
-        for key in ("accuracy", "accuracy_mean_action"):
-            if all(r[key] is not None for r in rs):
+        for key in ("accuracy", "accuracy_mean_action", "accuracy_namer_alone"):  # the last: a row with a namer
+            if all(r.get(key) is not None for r in rs):
                 values = np.array([r[key] for r in rs])
                 std = values.std(0, ddof=1) if len(rs) > 1 else np.zeros(values.shape[1])
                 entry[key], entry[f"{key}_std"] = values.mean(0).round(4).tolist(), std.round(4).tolist()
@@ -412,6 +427,17 @@ def targets(table: dict[str, dict]) -> list[str]:
             gap = acc[-1] - table[other]["accuracy"][-1]
             lines.append(f"- Beats {table[other]['label']} by >= 0.15 after 10 probes: "
                          f"{'met' if gap >= 0.15 else 'not met'} ({gap:+.3f}).")
+        for other in (row for row in table if ROWS[row].namer_of):  # the same namer reading probes placed by no one
+            label, namer_of = table[other]["label"], ROWS[other].namer_of
+            if namer_of != best or "accuracy_namer_alone" not in table[best]:
+                lines.append(f"- Beats {label} by >= 0.15 after 10 probes: not compared (named by the namer of "
+                             f"{namer_of}, not the best variant's).")
+                continue
+            alone = table[best]["accuracy_namer_alone"][-1]
+            gap = alone - table[other]["accuracy"][-1]
+            lines.append(f"- Beats {label} by >= 0.15 after 10 probes, the same namer alone reading both: "
+                         f"{'met' if gap >= 0.15 else 'not met'} ({gap:+.3f}; the best variant's namer alone "
+                         f"{alone:.3f}, with its classifier {acc[-1]:.3f}).")
         if "lstm" in table:
             lost = [k for k in range(3, 11) if acc[k - 1] <= table["lstm"]["accuracy"][k - 1]]
             lines.append("- Beats the LSTM at every probe count from 3 on: " + (

@@ -31,12 +31,12 @@ def run(name: str, *args: str) -> subprocess.CompletedProcess:
 
 
 def fake_run(out: Path, row: str, seed: int, accuracy: list[float], fingerprint: str = "abc",
-             val: float = 0.5) -> None:
+             val: float = 0.5, **facts) -> None:
     learned = row not in ("random", "line_scan", "centre_scan")
     record = {"row": row, "label": row, "config": f"configs/{row}.yaml", "seed": seed, "accuracy": accuracy,
               "accuracy_mean_action": accuracy if learned else None, "best_val_acc": val, "train_wall_s": 1.0,
               "parallel_jobs": 1,
-              "test_episodes": 2048, "test_fingerprint": fingerprint, "commit": "abc1234", "hardware": "cpu"}
+              "test_episodes": 2048, "test_fingerprint": fingerprint, "commit": "abc1234", "hardware": "cpu", **facts}
     (out / "runs").mkdir(parents=True, exist_ok=True)
     (out / "runs" / f"{row}-seed{seed}.json").write_text(json.dumps(record))
 
@@ -98,6 +98,33 @@ def test_planner_row_plans_on_the_table_s_test_episodes_and_merges_beside_the_le
     assert "| tiny planner | 1 |" in text and "Beats random probes + PCRN-FC by >= 0.15 after 10 probes: met (+0.200)" in text
     assert "| tiny planner | `scripts/planner_ceiling.py --library-split train --library 128 --split test" in text
     assert "Beats tiny planner" not in text  # the 0.15 targets compare policies feeding one classifier
+
+
+def test_probes_placed_by_no_one_are_set_against_the_best_variant_s_namer_alone(tmp_path):
+    """A row of random candidates named by the best variant's namer: the 0.15 margin is read with that namer alone on
+    both sides (the same classifier), not with the variant's classifier added; another row's namer is not compared."""
+    table1 = script("reproduce_table1")
+    best, random_named = table1.NAMER_65K, "random_candidates_namer65k"
+    assert table1.ROWS[random_named].namer_of == best and table1.ROWS[random_named].planned == "random"
+    assert "--random" in table1.ROWS[random_named].planner and "--fixed" in table1.ROWS["candidate_scan_namer65k"].planner
+    fake_run(tmp_path, best, 0, [0.95] * 10, val=0.9, accuracy_namer_alone=[0.9] * 10)
+    fake_run(tmp_path, random_named, 0, [0.8] * 10, val=None)
+    fake_run(tmp_path, "random", 0, [0.4] * 10)
+    table1.ROWS["other_namer_scan"] = table1.Row("other namer's scan", learned=False, planner=("--fixed",),
+                                                 planned="fixed", namer_of="pcrn_fc")
+    fake_run(tmp_path, "other_namer_scan", 0, [0.5] * 10, val=None)
+    try:
+        table1.merge(tmp_path)
+    finally:
+        del table1.ROWS["other_namer_scan"]
+    saved = json.loads((tmp_path / "table1.json").read_text())["rows"]
+    assert saved[best]["accuracy_namer_alone"] == [0.9] * 10 and "accuracy_namer_alone" not in saved["random"]
+    text = (tmp_path / "table1.md").read_text()
+    label = table1.ROWS[random_named].label
+    assert (f"Beats {label} by >= 0.15 after 10 probes, the same namer alone reading both: not met (+0.100; the best "
+            "variant's namer alone 0.900, with its classifier 0.950).") in text
+    assert "Beats random probes + PCRN-FC by >= 0.15 after 10 probes: met (+0.550)." in text
+    assert f"Beats other namer's scan by >= 0.15 after 10 probes: not compared (named by the namer of pcrn_fc" in text
 
 
 def test_best_pcrn_variant_is_chosen_on_validation_not_test(tmp_path):
@@ -396,12 +423,19 @@ def test_planner_probes_where_the_reading_tells_the_class_and_runs_on_real_probe
     greedy, _ = planner.probe_episodes(queries4, torch.stack([x, y, z]), cells4, labels4, 2, 12, 4, 0.005, 1e-3)
     assert greedy[:, 0].tolist() == [0, 0]  # while one step ahead X looks best
     real = run("planner_ceiling", "--episodes", "16", "--library", "2048", "--n-probes", "3", "--places", "3",
-               "--leans", "1.0", "--fixed", "--best-first-two", "--two-step", "2")
+               "--leans", "1.0", "--fixed", "--random", "--best-first-two", "--two-step", "2")
     assert real.returncode == 0, real.stderr[-2000:]
     result = json.loads(real.stdout.strip().splitlines()[-1])
     assert result["candidates"] == 9 and len(result["planner"]["accuracy"]) == 3
     assert result["fixed"]["tilt_deg"] == 0 and result["fixed"]["places"] == 3  # straight, one probe per place
-    assert result["planner"]["repeats"] == result["fixed"]["repeats"] == 0  # without faults never a candidate twice
+    assert result["planner"]["repeats"] == result["fixed"]["repeats"] == result["random"]["repeats"] == 0  # without
+    # faults never a candidate twice
+    alone = run("planner_ceiling", "--episodes", "16", "--library", "2048", "--n-probes", "3", "--places", "3",
+                "--leans", "1.0", "--random", "--no-planner", "--library-seed", "0", "--seed", "5")
+    assert alone.returncode == 0, alone.stderr[-2000:]
+    alone = json.loads(alone.stdout.strip().splitlines()[-1])
+    assert "planner" not in alone and alone["library_seed"] == 0  # the library of --seed 0: the namer above
+    assert alone["random"]["accuracy"] != result["random"]["accuracy"]  # other draws, the same namer
     assert all(0 <= a <= 1 for a in result["planner"]["accuracy"])
     assert len(result["two_step"]["accuracy"]) == 3
     assert len(result["best_first_two"]["accuracy"]) == 3 and result["first_two_on_library"]["best"]["accuracy"] >= \
@@ -416,6 +450,8 @@ def test_planner_probes_where_the_reading_tells_the_class_and_runs_on_real_probe
     assert bad.returncode != 0 and "--n-probes 10: more than the 1 candidates" in bad.stderr
     bad = run("planner_ceiling", "--noise", "1.0")
     assert bad.returncode != 0 and "--noise 1.0: must be in [0, 1)" in bad.stderr
+    bad = run("planner_ceiling", "--no-planner", "--fixed", "--save-rollouts", "x.npz")
+    assert bad.returncode != 0 and "--no-planner: needs --fixed or --random, and no option" in bad.stderr
     bad = run("planner_ceiling", "--noise", "0.1", "--best-first-two")
     assert bad.returncode != 0 and "--best-first-two: needs" in bad.stderr
 
