@@ -26,6 +26,10 @@ With --soft T [T ...] the teacher's own states are also read by the planner agai
 ranking of every candidate there, softmax(-(entropy - least) / T), instead of its pick alone (distillation): the
 planner's picks are close calls between candidates (a held-out top-1 of ~0.5), so its pick alone teaches little of
 what the second best is worth.
+With --belief the copy also reads, at every state, the namer's belief (BayesNamer.belief: the class posterior, where
+along the line the object lies and how sure that is, its offset across the line): what the planner weighs its
+candidates by, summed up. Why: the copy stays under its teacher on the unseen positions whatever else it is taught,
+and it reads only what each candidate touched, from which the planner's weighing of a whole library is far to learn.
 
     .venv/bin/python scripts/copy_planner.py --teacher data/planner/train_s10.npz data/planner/train_s20.npz
 
@@ -54,6 +58,7 @@ sys.path.insert(0, str(ROOT / "scripts"))
 from hg.lightning.data import EvalEpisodes, load_teacher, teacher_meta  # noqa: E402
 from hg.sim import PoseRegions, ProbeSimulator, candidate_requests, sample_episodes  # noqa: E402
 from hg.sim.library import MISS, readings, teacher_library  # noqa: E402
+from hg.nets.library import log_likelihood  # noqa: E402
 from planner_ceiling import CHUNK, cell_matrix, fixed_sequence, probe_episodes, random_choice, summary  # noqa: E402
 
 
@@ -64,12 +69,42 @@ class BayesNamer:
 
     def __init__(self, meta: dict, sim: ProbeSimulator, regions: PoseRegions, n_classes: int,
                  library: int | None = None) -> None:
-        readings_, labels = teacher_library(meta, sim, regions, n_classes, library)
+        readings_, labels, positions = teacher_library(meta, sim, regions, n_classes, library)
         self.meta, self.n_classes = meta, n_classes
+        # where each library episode's object lies, in units of the pose range's half-width (for `belief`)
+        self.positions = torch.from_numpy(positions / max(sim.scene.object_y[1], sim.scene.object_x[1])).float()
+        self.one_hot = torch.nn.functional.one_hot(torch.from_numpy(labels), n_classes).float()
         self.n_bins = int(np.ceil(sim.scene.probe_length / meta["bin"])) + 2
         bins = np.where(readings_ == MISS, 0, 1 + np.minimum(readings_ / meta["bin"], self.n_bins - 2)).astype(np.int64)
         self.cells = cell_matrix(bins, labels, self.n_bins, n_classes)
         self.library, self.labels = torch.from_numpy(readings_.T.copy()), torch.from_numpy(labels)
+
+    def log_likelihood(self, candidate: torch.Tensor, read: torch.Tensor) -> torch.Tensor:
+        """(Q, L) log p(each episode's reading of its candidate (Q,) | each library episode), as the planner weighs."""
+        return log_likelihood(read[:, None], self.library[candidate], self.meta["sigma"], self.meta["mismatch"])
+
+    def belief(self, log_w: torch.Tensor) -> torch.Tensor:
+        """(Q, classes + 4): what the namer believes of episodes whose log weights over its library are log_w (Q, L):
+        the class posterior, where along the line the object lies and how sure that is (mean and spread), its mean
+        offset across the line and the chance it lies to +x. The planner's belief, which it weighs its candidates
+        by, summed up for a network (--belief)."""
+        w = torch.softmax(log_w, 1)
+        x, y = self.positions.T
+        mean_y = w @ y
+        spread = (w @ y.square() - mean_y.square()).clamp_min(0).sqrt()
+        return torch.cat([w @ self.one_hot, torch.stack([mean_y, spread, w @ x, w @ (x > 0).float()], 1)], 1)
+
+    def beliefs(self, chosen: torch.Tensor, query: torch.Tensor) -> torch.Tensor:
+        """(N * E, classes + 4) the belief before each probe of episodes that probed `chosen` (E, N), in
+        teacher_samples' order (probe-major)."""
+        out = []
+        for rows in torch.split(torch.arange(len(chosen)), CHUNK):
+            log_w, before = torch.zeros(len(rows), self.library.shape[1]), []
+            for k in range(chosen.shape[1]):
+                before.append(self.belief(log_w))
+                log_w += self.log_likelihood(chosen[rows, k], query[rows, chosen[rows, k]])
+            out.append(torch.stack(before))
+        return torch.cat(out, 1).reshape(-1, out[0].shape[-1])
 
     def probe(self, query: np.ndarray, n_probes: int, choose, advise: bool = False) -> tuple[np.ndarray, ...]:
         """(E, N) candidates probed and classes named after each probe, for episodes whose readings of every
@@ -140,11 +175,24 @@ def fit(states: torch.Tensor, masks: torch.Tensor, targets: torch.Tensor, steps:
     return net.eval(), sum(recent) / len(recent)
 
 
-def network_choice(net: nn.Module, n_probes: int, probe_length: float, generator: torch.Generator | None):
-    """A `choose` for probe_episodes: the network's most likely unprobed candidate, or one drawn (with generator)."""
+def network_choice(net: nn.Module, n_probes: int, probe_length: float, generator: torch.Generator | None,
+                   namer: BayesNamer | None = None):
+    """A `choose` for probe_episodes: the network's most likely unprobed candidate, or one drawn (with generator);
+    with `namer`, the network also reads its belief (BayesNamer.belief), weighed as the episodes' probes come in."""
+    memory = {}
+
     def choose(k: int, used: torch.Tensor, query: torch.Tensor) -> torch.Tensor:
+        x = state(used, query, k, n_probes, probe_length)
+        if namer is not None:
+            if k == 0:
+                memory["log_w"] = torch.zeros(len(query), namer.library.shape[1])
+            else:  # the candidate each episode probed last
+                last = (used & ~memory["used"]).float().argmax(1)
+                memory["log_w"] += namer.log_likelihood(last, query[torch.arange(len(query)), last])
+            memory["used"] = used.clone()
+            x = torch.cat([x, namer.belief(memory["log_w"])], 1)
         with torch.no_grad():
-            logits = net(state(used, query, k, n_probes, probe_length)).masked_fill(used, -torch.inf)
+            logits = net(x).masked_fill(used, -torch.inf)
         if generator is None:
             return logits.argmax(1)
         return torch.multinomial(torch.softmax(logits, 1), 1, generator=generator)[:, 0]
@@ -167,6 +215,8 @@ def main() -> None:
     parser.add_argument("--dagger-episodes", type=int, default=1024, help="fresh training episodes per round")
     parser.add_argument("--soft", type=float, nargs="*", default=[],
                         help="temperatures (nats) of copies taught the planner's ranking of every candidate")
+    parser.add_argument("--belief", action="store_true",
+                        help="the copy also reads the namer's belief (class, where the object lies) at every state")
     args = parser.parse_args()
     for path in args.teacher:
         if not Path(path).is_file():
@@ -175,6 +225,8 @@ def main() -> None:
             or args.dagger < 0 or args.dagger_episodes < 1 or any(t <= 0 for t in args.soft)):
         parser.error("--steps, --hidden, --episodes, --dagger-episodes must be >= 1, --planner and --dagger >= 0, "
                      "--held-out in (0, 1), --soft > 0")
+    if args.belief and (args.dagger or args.soft):
+        parser.error("--belief: not with --dagger or --soft (their states are read without the belief)")
     meta = teacher_meta(args.teacher)
     torch.set_num_threads(1)
     start = time.time()
@@ -205,9 +257,14 @@ def main() -> None:
 
     start = time.time()
     states, masks, targets = teacher_samples(chosen[:n_train], teacher_query[:n_train], n_probes, probe_length)
-    net, train_ce = fit(states, masks, targets, args.steps, args.hidden, args.seed)
     held_states, held_masks, held_targets = teacher_samples(chosen[n_train:], teacher_query[n_train:], n_probes,
                                                             probe_length)
+    believer = namer if args.belief else None  # the namer whose belief the copy reads
+    if believer:
+        states = torch.cat([states, namer.beliefs(chosen[:n_train], teacher_query[:n_train])], 1)
+        held_states = torch.cat([held_states, namer.beliefs(chosen[n_train:], teacher_query[n_train:])], 1)
+        print(f"the namer's belief at every teacher state in {time.time() - start:.0f} s", flush=True)
+    net, train_ce = fit(states, masks, targets, args.steps, args.hidden, args.seed)
 
     def held_out_top1(net: nn.Module) -> float:
         """How often the net's most likely candidate is the teacher's on the held-out teacher episodes."""
@@ -216,7 +273,7 @@ def main() -> None:
 
     def scored(net: nn.Module, generator: torch.Generator | None) -> list[float]:
         """Accuracy after each probe on the scored episodes, the net choosing (drawing with `generator`)."""
-        _, named = namer.probe(query, n_probes, network_choice(net, n_probes, probe_length, generator))
+        _, named = namer.probe(query, n_probes, network_choice(net, n_probes, probe_length, generator, believer))
         return [round(float(a), 4) for a in (named == test_labels[:, None]).mean(0)]
 
     top1 = held_out_top1(net)
@@ -264,9 +321,9 @@ def main() -> None:
               f"sampled copy's accuracy after each probe " + " ".join(f"{a:.3f}" for a in accuracy), flush=True)
 
     order = np.argsort(np.abs(np.linspace(-meta["span"], meta["span"], meta["places"])), kind="stable")
-    runs = {"copy": (network_choice(net, n_probes, probe_length, None), len(query)),
-            "copy_sampled": (network_choice(net, n_probes, probe_length, torch.Generator().manual_seed(args.seed)),
-                             len(query)),
+    runs = {"copy": (network_choice(net, n_probes, probe_length, None, believer), len(query)),
+            "copy_sampled": (network_choice(net, n_probes, probe_length, torch.Generator().manual_seed(args.seed),
+                                            believer), len(query)),
             "fixed": (fixed_sequence(order * (len(candidates) // meta["places"])), len(query)),
             "random": (random_choice(torch.Generator().manual_seed(args.seed)), len(query))}
     if args.planner:
@@ -284,7 +341,7 @@ def main() -> None:
     print(json.dumps(results | {"top1": round(top1, 4), "train_ce": round(train_ce, 4), "teacher_episodes": n_train,
                                 "held_out": len(labels) - n_train, "episodes": len(query), "mode": args.mode,
                                 "library_episodes": namer.library.shape[1], "steps": args.steps, "hidden": args.hidden,
-                                "split": args.split} | ({"dagger": rounds} if rounds else {})
+                                "split": args.split, "belief": args.belief} | ({"dagger": rounds} if rounds else {})
                      | ({"soft": soft} if soft else {})))
 
 

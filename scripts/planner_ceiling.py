@@ -367,7 +367,7 @@ def main() -> None:
                                                     np.random.default_rng(args.seed))
     labels, poses = sample_episodes(regions, args.library_split, args.library, n_classes,
                                     np.random.default_rng(library_seed + 1))
-    library, labels = library_readings(sim, labels, poses, args.places, args.span, args.leans, args.shifts,
+    library, labels, _ = library_readings(sim, labels, poses, args.places, args.span, args.leans, args.shifts,
                                        args.mirror, args.along_leans)
     noise = SensorNoise(miss_prob=args.noise, false_contact_prob=args.noise)
     with ProbeSimulator("hg4", batch_size=256 if args.mode == "arm" else 1024, mode=args.mode, noise=noise,

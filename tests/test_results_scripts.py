@@ -462,7 +462,7 @@ def test_planner_library_shifts_and_mirror_images_read_as_moved_and_mirrored_obj
     poses = np.array([[0.05, 0.0, -0.25, 5.0, -4.0, 30.0], [-0.08, 0.02, -0.3, -6.0, 8.0, 100.0],
                       [0.1, -0.03, -0.22, 2.0, 3.0, 200.0], [-0.02, 0.04, -0.28, -3.0, -7.0, 300.0]])
     with ProbeSimulator("hg4", batch_size=8, mode="ideal") as sim:
-        library, library_labels = library_readings(sim, labels, poses, 5, 0.4, [1.0], 1, True, along_leans)
+        library, library_labels, positions = library_readings(sim, labels, poses, 5, 0.4, [1.0], 1, True, along_leans)
         step = 0.2 * 0.5 * (sim.scene.probe_y[1] - sim.scene.probe_y[0])  # 0.2 request units apart, in metres
         candidates = candidate_requests(5, 0.4, [1.0], along_leans)
         moved, mirrored = poses.copy(), poses * [-1, 1, 1, 1, -1, -1]  # x -> -x: Ry and Rz change sign
@@ -474,6 +474,10 @@ def test_planner_library_shifts_and_mirror_images_read_as_moved_and_mirrored_obj
     assert (as_moved != MISS).any() and (as_mirrored != MISS).any()
     np.testing.assert_allclose(library[16:20], as_moved, atol=1e-4)
     np.testing.assert_allclose(library[12:16], as_mirrored, atol=1e-4)
+    # where each library episode's object lies: across the line (mirrored: the other side) and along it (moved)
+    np.testing.assert_allclose(positions[16:20], moved[:, :2], atol=1e-6)
+    np.testing.assert_allclose(positions[12:16], mirrored[:, :2], atol=1e-6)
+    np.testing.assert_allclose(positions[8:12], poses[:, :2], atol=1e-6)
 
 
 def test_copy_teacher_copies_a_fixed_scan_from_the_probes_and_their_index(tmp_path):
@@ -516,6 +520,11 @@ def test_copy_planner_learns_a_teacher_s_candidate_sequence_and_probes_with_it(t
     assert result["top1"] == 1.0 and result["held_out"] == 8  # a fixed sequence is a function of the probe index
     assert result["copy"]["places"] == 3 and result["copy"]["tilt_deg"] == pytest.approx(2 / 3 * 26.57, abs=0.1)  # lean 1.0: 26.6 degrees
     assert result["fixed"]["tilt_deg"] == 0 and len(result["random"]["accuracy"]) == 3
+    belief = run("copy_planner", "--teacher", str(tmp_path / "scan.npz"), "--episodes", "32", "--steps", "300",
+                 "--hidden", "32", "--belief")  # reading the namer's belief too, it still copies the sequence
+    assert belief.returncode == 0, belief.stderr[-2000:]
+    found = json.loads(belief.stdout.strip().splitlines()[-1])
+    assert found["belief"] and found["top1"] == 1.0 and found["copy"]["places"] == 3
     # taught on its own states too: the planner's picks there, not the scan's, join the teacher's 56 x 3 states
     dagger = run("copy_planner", "--teacher", str(tmp_path / "scan.npz"), "--episodes", "32", "--steps", "300",
                  "--hidden", "32", "--split", "val", "--dagger", "1", "--dagger-episodes", "16")
@@ -532,6 +541,8 @@ def test_copy_planner_learns_a_teacher_s_candidate_sequence_and_probes_with_it(t
     off = np.tile(sequence, (64, 1, 1))
     off[:, 0, 0] = 0.1  # not one of the candidates
     planner.save_rollouts(tmp_path / "off.npz", labels, poses, off, meta)
+    bad = run("copy_planner", "--teacher", str(tmp_path / "scan.npz"), "--belief", "--dagger", "1")
+    assert bad.returncode != 0 and "--belief: not with --dagger or --soft" in bad.stderr
     bad = run("copy_planner", "--teacher", str(tmp_path / "off.npz"))
     assert bad.returncode != 0 and "--teacher: 64 requests are not candidates" in bad.stderr
 
@@ -577,6 +588,24 @@ def test_accuracy_by_cell_names_a_choice_s_probes_as_the_planner_would(tmp_path)
         query = planner.readings(sim, test_labels, test_poses, planner.candidate_requests(3, 0.5, [1.0]))
     chosen, named = namer.probe(query, 4, None)
     assert np.array_equal(namer.probe(query, 4, chosen)[1], named)
+    # the namer's belief (copy_planner.py --belief): before any probe the library's own, as likely on either side
+    # of the line (it is mirrored); a copy reading it as its probes come in reads what a replay of them gives
+    beliefs = namer.beliefs(torch.from_numpy(chosen), torch.from_numpy(query))
+    assert beliefs.shape == (4 * 64, 4 + 4)
+    torch.testing.assert_close(beliefs[:, :4].sum(1), torch.ones(4 * 64))
+    torch.testing.assert_close(beliefs[:64], beliefs[:1].expand(64, -1))
+    assert beliefs[0, 7] == pytest.approx(0.5, abs=1e-4) and not torch.allclose(beliefs[192:], beliefs[:64])
+
+    class Reader(torch.nn.Module):  # chooses the first unprobed candidate, keeping what it read
+        read = []
+
+        def forward(self, x):
+            self.read.append(x[:, -8:])
+            return torch.zeros(len(x), query.shape[1])
+
+    module = script("copy_planner")
+    first, _ = namer.probe(query, 4, module.network_choice(Reader(), 4, 0.6, None, namer))
+    torch.testing.assert_close(torch.cat(Reader.read), namer.beliefs(torch.from_numpy(first), torch.from_numpy(query)))
     assert not np.array_equal(namer.probe(query, 4, chosen[:, ::-1].copy())[0], chosen)
     fit = subprocess.run([sys.executable, "-m", "hg.lightning.cli", "fit", "--config", str(ROOT / "configs" / "tiny.yaml"),
                           "--trainer.max_steps", "1", "--model.location", "candidates", "--model.candidate_places",

@@ -412,7 +412,7 @@ class HapticGlance(pl.LightningModule):
                 raise ValueError(f"model.library_namer: {path}: meta {field}={have!r}, this model needs {want!r} "
                                  "(held-out poses must not enter the library; its candidates must be the model's)")
         with ProbeSimulator(data.object_set, 1024, data.scene, "ideal", seed=0) as sim:
-            library, labels = teacher_library(meta, sim, data.regions, data.n_classes, h.library_namer_episodes)
+            library, labels, _ = teacher_library(meta, sim, data.regions, data.n_classes, h.library_namer_episodes)
         return LibraryNamer(torch.from_numpy(library), torch.from_numpy(labels).long(), data.n_classes,
                             meta["sigma"], meta["mismatch"], data.noise, data.scene.probe_length).to(self.device)
 

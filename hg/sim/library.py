@@ -35,8 +35,9 @@ def readings(sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray, candida
 
 def library_readings(sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray, places: int, span: float,
                      leans: list[float], shifts: int, mirror: bool, along_leans: list[float] = ()
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """(L', C) readings of the candidates and (L',) classes of the library: its episodes as drawn, and with `shifts`
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(L', C) readings of the candidates, (L',) classes and (L', 2) object positions (x across the line from it, y
+    along it; m) of the library: its episodes as drawn, and with `shifts`
     also moved along the line by 1..shifts place steps each way (kept where the object stays in the pose range),
     and with `mirror` mirrored across the line too. The ground is alike all along the line, so an object moved one
     step reads at each place what it read one place back; and hg4's shapes are mirror-symmetric, so the mirror image
@@ -49,22 +50,23 @@ def library_readings(sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray,
     full = readings(sim, labels, poses, wide).reshape(len(labels), places + 2 * shifts, n_directions)
     metres = step * 0.5 * (sim.scene.probe_y[1] - sim.scene.probe_y[0])  # one place step along the line
     swap = mirrored_directions(n_directions, len(along_leans))
-    parts, part_labels = [], []
+    parts, part_labels, part_positions = [], [], []
     for j in range(-shifts, shifts + 1):  # the object moved j steps: it reads at place p what it read at p - j
         y = poses[:, 1] + j * metres
         keep = (y >= sim.scene.object_y[0]) & (y <= sim.scene.object_y[1])
         view = full[keep, shifts - j:shifts - j + places]
-        for directions in ([slice(None)] + [swap] * mirror):
+        for side, directions in zip((1, -1), [slice(None)] + [swap] * mirror):  # the mirror image: x across -> -x
             parts.append(view[..., directions].reshape(int(keep.sum()), -1))
             part_labels.append(labels[keep])
-    return np.concatenate(parts), np.concatenate(part_labels)
+            part_positions.append(np.stack([side * (poses[keep, 0] - sim.scene.probe_x), y[keep]], 1))
+    return np.concatenate(parts), np.concatenate(part_labels), np.concatenate(part_positions)
 
 
 def teacher_library(meta: dict, sim: ProbeSimulator, regions: PoseRegions, n_classes: int,
-                    library: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(L', C) readings and (L',) classes of the library a teacher file's planner read (its meta: library split,
-    size, shifts, mirror, seed; `library` episodes in place of its size if given), drawn as planner_ceiling.py
-    draws it. `sim` must probe in ideal mode, as the planner's library was read."""
+                    library: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(L', C) readings, (L',) classes and (L', 2) positions (library_readings) of the library a teacher file's
+    planner read (its meta: library split, size, shifts, mirror, seed; `library` episodes in place of its size if
+    given), drawn as planner_ceiling.py draws it. `sim` must probe in ideal mode, as the planner's library was read."""
     labels, poses = sample_episodes(regions, meta["library_split"], library or meta["library"], n_classes,
                                     np.random.default_rng(meta["seed"] + 1))
     return library_readings(sim, labels, poses, meta["places"], meta["span"], meta["leans"], meta["shifts"],
