@@ -79,10 +79,6 @@ class BayesNamer:
         self.cells = cell_matrix(bins, labels, self.n_bins, n_classes)
         self.library, self.labels = torch.from_numpy(readings_.T.copy()), torch.from_numpy(labels)
 
-    def log_likelihood(self, candidate: torch.Tensor, read: torch.Tensor) -> torch.Tensor:
-        """(Q, L) log p(each episode's reading of its candidate (Q,) | each library episode), as the planner weighs."""
-        return log_likelihood(read[:, None], self.library[candidate], self.meta["sigma"], self.meta["mismatch"])
-
     def belief(self, log_w: torch.Tensor) -> torch.Tensor:
         """(Q, classes + 4): what the namer believes of episodes whose log weights over its library are log_w (Q, L):
         the class posterior, where along the line the object lies and how sure that is (mean and spread), its mean
@@ -96,20 +92,22 @@ class BayesNamer:
 
     def beliefs(self, chosen: torch.Tensor, query: torch.Tensor) -> torch.Tensor:
         """(N * E, classes + 4) the belief before each probe of episodes that probed `chosen` (E, N), in
-        teacher_samples' order (probe-major)."""
+        teacher_samples' order (probe-major): their log weights as probe_episodes weighs them."""
         out = []
         for rows in torch.split(torch.arange(len(chosen)), CHUNK):
             log_w, before = torch.zeros(len(rows), self.library.shape[1]), []
             for k in range(chosen.shape[1]):
                 before.append(self.belief(log_w))
-                log_w += self.log_likelihood(chosen[rows, k], query[rows, chosen[rows, k]])
+                c = chosen[rows, k]
+                log_w += log_likelihood(query[rows, c][:, None], self.library[c], self.meta["sigma"],
+                                        self.meta["mismatch"])
             out.append(torch.stack(before))
         return torch.cat(out, 1).reshape(-1, out[0].shape[-1])
 
     def probe(self, query: np.ndarray, n_probes: int, choose, advise: bool = False) -> tuple[np.ndarray, ...]:
         """(E, N) candidates probed and classes named after each probe, for episodes whose readings of every
-        candidate are `query` (E, C): probe_episodes in chunks; choose(k, used, query) as there (None: the planner),
-        given the chunk's rows of `query`, or an (E, N) array of the candidates already chosen. With `advise`, also
+        candidate are `query` (E, C): probe_episodes in chunks; choose(k, used, query, log_w) as there (None: the
+        planner), given the chunk's rows of `query`, or an (E, N) array of the candidates already chosen. With `advise`, also
         (E, N, C) the planner's expected entropy of every candidate at every state the episodes reached (its pick
         is the argmin; slow: the planner's cost)."""
         out = []
@@ -126,7 +124,7 @@ class BayesNamer:
 
 def fixed_choices(chosen: torch.Tensor):
     """A `choose` for probe_episodes: the candidates (Q, N) each episode probed, as a policy chose them."""
-    return lambda k, used, query: chosen[:, k]
+    return lambda k, used, query, log_w: chosen[:, k]
 
 
 def state(used: torch.Tensor, query: torch.Tensor, k: int, n_probes: int, probe_length: float) -> torch.Tensor:
@@ -178,19 +176,11 @@ def fit(states: torch.Tensor, masks: torch.Tensor, targets: torch.Tensor, steps:
 def network_choice(net: nn.Module, n_probes: int, probe_length: float, generator: torch.Generator | None,
                    namer: BayesNamer | None = None):
     """A `choose` for probe_episodes: the network's most likely unprobed candidate, or one drawn (with generator);
-    with `namer`, the network also reads its belief (BayesNamer.belief), weighed as the episodes' probes come in."""
-    memory = {}
-
-    def choose(k: int, used: torch.Tensor, query: torch.Tensor) -> torch.Tensor:
+    with `namer` (the one probing), the network also reads its belief (BayesNamer.belief) of the probes so far."""
+    def choose(k: int, used: torch.Tensor, query: torch.Tensor, log_w: torch.Tensor) -> torch.Tensor:
         x = state(used, query, k, n_probes, probe_length)
         if namer is not None:
-            if k == 0:
-                memory["log_w"] = torch.zeros(len(query), namer.library.shape[1])
-            else:  # the candidate each episode probed last
-                last = (used & ~memory["used"]).float().argmax(1)
-                memory["log_w"] += namer.log_likelihood(last, query[torch.arange(len(query)), last])
-            memory["used"] = used.clone()
-            x = torch.cat([x, namer.belief(memory["log_w"])], 1)
+            x = torch.cat([x, namer.belief(log_w)], 1)
         with torch.no_grad():
             logits = net(x).masked_fill(used, -torch.inf)
         if generator is None:

@@ -66,7 +66,8 @@ from hg.nets.library import log_likelihood  # noqa: E402
 from hg.sim import SPLITS, PoseRegions, ProbeSimulator, SensorNoise, candidate_requests, sample_episodes  # noqa: E402
 from hg.sim.library import MISS, library_readings, readings  # noqa: E402
 
-Choose = Callable[[int, torch.Tensor, torch.Tensor], "torch.Tensor | None"]  # (k, used, query) -> candidates or None
+# (k, used, query, log_w) -> candidates or None; log_w (Q, L): the library's log weights after the probes so far
+Choose = Callable[[int, torch.Tensor, torch.Tensor, torch.Tensor], "torch.Tensor | None"]
 CHUNK = 128  # scored episodes planned side by side: their weights over the library are (CHUNK, L)
 
 
@@ -188,9 +189,9 @@ def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tens
                    faulty: torch.Tensor | None = None, noise: SensorNoise = SensorNoise(), probe_length: float = 1.0,
                    two_step: TwoStep | None = None, advice: list | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(Q, N) candidates probed in each episode (its readings of every candidate: `query`, (Q, C)) and the class
-    named after each probe: the planner's choices, or those of `choose(k, used, query)` -> (Q,) candidate indices
-    (a fixed sequence, or a network copying the planner; None: the planner's), used (Q, C) bool marking the
-    candidates probed so far.
+    named after each probe: the planner's choices, or those of `choose(k, used, query, log_w)` -> (Q,) candidate
+    indices (a fixed sequence, or a network copying the planner; None: the planner's), used (Q, C) bool marking the
+    candidates probed so far, log_w (Q, L) the library's log weights after them (what the namer believes).
     library: (C, L) readings. With a faulty sensor, `faulty` (N, Q, C) holds what probe k reads from each candidate
     (an independent draw of the sensor's faults per probe) and `noise` its fault rates: the library is weighed with
     the sensor's model (log_likelihood), and the planner may probe a candidate again, since a second reading can
@@ -204,7 +205,7 @@ def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tens
     rows, chosen, named = torch.arange(len(query)), [], []
     one_hot = torch.nn.functional.one_hot(labels, n_classes).float()
     for k in range(n_probes):
-        c = None if choose is None else choose(k, used, query)
+        c = None if choose is None else choose(k, used, query, log_w)
         if c is None or advice is not None:
             score = expected_entropy(cells, weights, n_bins, n_classes, noise)
             if faulty is None:  # in ideal mode a repeated probe reads the same
@@ -224,19 +225,19 @@ def probe_episodes(query: torch.Tensor, library: torch.Tensor, cells: torch.Tens
 
 def fixed_sequence(sequence: np.ndarray) -> Choose:
     """A `choose` for probe_episodes: candidate sequence[k] at probe k in every episode."""
-    return lambda k, used, query: torch.full((len(query),), int(sequence[k]))
+    return lambda k, used, query, log_w: torch.full((len(query),), int(sequence[k]))
 
 
 def random_choice(generator: torch.Generator) -> Choose:
     """A `choose` for probe_episodes: an unprobed candidate at random."""
-    def choose(k: int, used: torch.Tensor, query: torch.Tensor) -> torch.Tensor:
+    def choose(k: int, used: torch.Tensor, query: torch.Tensor, log_w: torch.Tensor) -> torch.Tensor:
         return torch.multinomial((~used).float(), 1, generator=generator)[:, 0]
     return choose
 
 
 def first_two(rule: dict, width: float, n_bins: int) -> Choose:
     """A `choose` for probe_episodes: best_first_two's rule for the first two probes, the planner's after."""
-    def choose(k: int, used: torch.Tensor, query: torch.Tensor) -> torch.Tensor | None:
+    def choose(k: int, used: torch.Tensor, query: torch.Tensor, log_w: torch.Tensor) -> torch.Tensor | None:
         if k == 0:
             return torch.full((len(query),), rule["first"])
         if k == 1:

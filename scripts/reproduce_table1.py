@@ -355,9 +355,9 @@ def plan_and_test(library: tuple[str, ...], seed: int, test_episodes: int, extra
     proc = subprocess.run([sys.executable, *command], capture_output=True, text=True, cwd=ROOT)
     if proc.returncode:
         raise RuntimeError(f"{' '.join(command)} failed (exit {proc.returncode}): {proc.stderr[-2000:]}")
-    planned = json.loads(proc.stdout.strip().splitlines()[-1])[planned]
+    result = json.loads(proc.stdout.strip().splitlines()[-1])[planned]
     data = ProbeDataModule(test_episodes=test_episodes, eval_seed=EVAL_SEED)
-    return {"command": " ".join(command), "max_steps": 0, "resumed_from_step": 0, "accuracy": planned["accuracy"],
+    return {"command": " ".join(command), "max_steps": 0, "resumed_from_step": 0, "accuracy": result["accuracy"],
             "accuracy_mean_action": None, "best_val_acc": None, "best_checkpoint": None,
             "train_wall_s": round(time.time() - start, 1), "test_wall_s": 0.0, "test_episodes": test_episodes,
             "test_fingerprint": test_fingerprint(data), "torch_threads": 1}
