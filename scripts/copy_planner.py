@@ -58,7 +58,7 @@ sys.path.insert(0, str(ROOT / "scripts"))
 from hg.lightning.data import EvalEpisodes, load_teacher, teacher_meta  # noqa: E402
 from hg.sim import PoseRegions, ProbeSimulator, candidate_requests, sample_episodes  # noqa: E402
 from hg.sim.library import MISS, readings, teacher_library  # noqa: E402
-from hg.nets.library import log_likelihood  # noqa: E402
+from hg.nets.library import belief, log_likelihood  # noqa: E402
 from planner_ceiling import CHUNK, cell_matrix, fixed_sequence, probe_episodes, random_choice, summary  # noqa: E402
 
 
@@ -80,15 +80,9 @@ class BayesNamer:
         self.library, self.labels = torch.from_numpy(readings_.T.copy()), torch.from_numpy(labels)
 
     def belief(self, log_w: torch.Tensor) -> torch.Tensor:
-        """(Q, classes + 4): what the namer believes of episodes whose log weights over its library are log_w (Q, L):
-        the class posterior, where along the line the object lies and how sure that is (mean and spread), its mean
-        offset across the line and the chance it lies to +x. The planner's belief, which it weighs its candidates
-        by, summed up for a network (--belief)."""
-        w = torch.softmax(log_w, 1)
-        x, y = self.positions.T
-        mean_y = w @ y
-        spread = (w @ y.square() - mean_y.square()).clamp_min(0).sqrt()
-        return torch.cat([w @ self.one_hot, torch.stack([mean_y, spread, w @ x, w @ (x > 0).float()], 1)], 1)
+        """(Q, classes + 4) hg.nets.library.belief of episodes whose log weights over the library are log_w (Q, L):
+        the planner's belief, which it weighs its candidates by, summed up for a network (--belief)."""
+        return belief(log_w, self.one_hot, self.positions)
 
     def beliefs(self, chosen: torch.Tensor, query: torch.Tensor) -> torch.Tensor:
         """(N * E, classes + 4) the belief before each probe of episodes that probed `chosen` (E, N), in

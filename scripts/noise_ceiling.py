@@ -76,8 +76,8 @@ def correct_after_each_probe(model: HapticGlance, namer, rollout, faulty: torch.
                              corrupted: torch.Tensor, labels: torch.Tensor) -> dict[str, np.ndarray]:
     """(B, N) bool, for each way of reading the rollout's probes: is the namer's class right after probe k+1.
     corrupted (B, N): the readings the sensor's faults flipped."""
-    chosen, read = model.library_readings(dataclasses.replace(rollout, points=faulty))
-    _, clean_read = model.library_readings(dataclasses.replace(rollout, points=clean))
+    chosen, read = model.library_readings(rollout.actions, faulty)
+    _, clean_read = model.library_readings(rollout.actions, clean)
     posteriors = {"faulty": namer(chosen, read), "faults_dropped": namer(chosen, read, corrupted),
                   "clean": namer(chosen, clean_read)}
     return {name: (p.argmax(-1) == labels[:, None]).numpy() for name, p in posteriors.items()}

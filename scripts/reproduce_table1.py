@@ -270,6 +270,17 @@ ROWS = {
         "copying the planner over 65536 training episodes (the trained models of the row without the namer), with its "
         "namer over the same library added to every prediction (beyond the paper)",
         scores="pcrn_fc_candidates_readings_only_imitate_planner65k_final_mirror"),
+    "pcrn_fc_candidates_readings_only_imitate_only_planner65k_final_mirror_library_namer": Row(
+        "PCRN-FC+ choosing among the greedy planner's candidate probes from what each candidate read so far alone, "
+        "never one twice, copying the planner over 65536 training episodes for 8000 steps and nothing after, wide "
+        f"touch set, learning rate falling to 5%, {FINAL_TOUCH_SET}, both touch sets reading an episode and its mirror "
+        "image across the line alike, with the planner's namer added to every prediction (beyond the paper)"),
+    "pcrn_fc_candidates_readings_only_belief_imitate_only_planner65k_final_mirror_library_namer": Row(
+        "PCRN-FC+ choosing among the greedy planner's candidate probes from what each candidate read so far and what "
+        "the planner's namer believes of them (class, where the object lies), never one twice, copying the planner "
+        "over 65536 training episodes for 8000 steps and nothing after, wide touch set, learning rate falling to 5%, "
+        f"{FINAL_TOUCH_SET}, both touch sets reading an episode and its mirror image across the line alike, with the "
+        "namer added to every prediction (beyond the paper)"),
     "pcrn_fc_candidates_readings_only_along_line_classifier_imitate_planner_final_mirror": Row(
         "PCRN-FC+ choosing among the greedy planner's candidate probes from what each candidate read so far alone (not "
         "PCRN's state), never one twice, copying the planner for 8000 steps, then the hybrid rule + wide touch set + "

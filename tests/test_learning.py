@@ -151,6 +151,49 @@ def test_imitation_warmup_probes_where_the_teacher_chose_and_copies_its_requests
     model.sim.close()
 
 
+def test_a_choice_reading_the_namers_belief_reads_it_from_the_teachers_episodes_and_as_it_probes(data, teacher):
+    """model.choice_reads_belief: the teacher's episodes come with the namer's belief after each probe (read once
+    in setup), the policy's own rollouts weigh the namer's library as they go, and the two agree on the same
+    probes (ideal mode); the choice's state ends with the belief, and the copy learns beside it."""
+    model = make_model(data, policy_warmup_steps=30, imitate=(str(teacher),), location="candidates",
+                       choice_reads_probes=True, choice_reads_state=False, library_namer=str(teacher),
+                       choice_reads_belief=True)
+    losses = []
+
+    class Record(pl.Callback):
+        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+            losses.append(float(trainer.callback_metrics["train/loss_imitation"]))
+
+    trainer = pl.Trainer(max_steps=30, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                         enable_model_summary=False, limit_val_batches=0, accelerator="cpu", callbacks=[Record()])
+    trainer.fit(model, datamodule=data)
+    assert len(losses) == 30 and np.mean(losses[-5:]) < 0.8 * np.mean(losses[:5])
+    beliefs = model.teacher["beliefs"]
+    assert beliefs.shape == (32, data.n_probes, data.n_classes + 4)
+    torch.testing.assert_close(beliefs[..., :data.n_classes].sum(-1), torch.ones(32, data.n_probes))
+    model.sim = data.make_simulator()  # fit's teardown closed the model's own
+    labels, poses, requests = (model.teacher[k][:8] for k in ("labels", "poses", "requests"))
+    rollout = model.rollout(labels, poses, 0, requests=requests)  # the namer weighs its library as the probes go
+    torch.testing.assert_close(rollout.beliefs, beliefs[:8], atol=1e-4, rtol=0)
+    # it named them on the way, as the namer names the whole rollout
+    torch.testing.assert_close(rollout.named, model.library_namer(*model.library_readings(rollout.actions,
+                                                                                           rollout.points)))
+    # the choice reads the belief: another belief, another choice
+    extra, _ = model.policy_extra(rollout.actions, rollout.points, beliefs=rollout.beliefs)
+    torch.testing.assert_close(extra[..., -(data.n_classes + 4):], rollout.beliefs)
+    states = model.policy_states(model.encode(rollout), model.mirrored_states(rollout.points), extra)
+    other = extra.clone()
+    other[..., -(data.n_classes + 4):] = torch.flip(rollout.beliefs, [0])
+    moved = model.policy_states(model.encode(rollout), model.mirrored_states(rollout.points), other)
+    assert not torch.allclose(model.location.log_probs(states[:, 1:]), model.location.log_probs(moved[:, 1:]))
+    scored = pl.Trainer(logger=False, enable_progress_bar=False, enable_model_summary=False, accelerator="cpu"
+                        ).validate(model, datamodule=data)[0]  # its own probes, each chosen beside the namer's belief
+    assert 0 <= scored["val/acc"] <= 1  # (validate's teardown closed the simulator)
+    with pytest.raises(ValueError, match="model.choice_reads_belief=true reads the library namer's belief, so it needs "
+                                         "model.location: candidates, model.library_namer"):
+        HapticGlance(location="candidates", choice_reads_belief=True)
+
+
 def test_a_teacher_planned_under_faults_is_replayed_with_its_faults_and_copied_by_a_choice_that_may_repeat(
         teacher, tmp_path):
     """Under sensor faults (planner_ceiling.py --noise) the teacher file holds the fault uniforms its planner read

@@ -419,6 +419,26 @@ def test_library_namer_weighs_the_library_by_how_well_its_readings_match() -> No
     torch.testing.assert_close(LibraryNamer(library, labels, 3, 0.005, 1e-3, chunk=64)(chosen, readings), log_p)
     with pytest.raises(ValueError, match=r"LibraryNamer: the library holds no episode of class \[3\]"):
         LibraryNamer(library, labels, 4, 0.005, 1e-3)
+    # its belief (model.choice_reads_belief): the same class posterior, and where the weighed library's objects lie
+    positions = torch.tensor([[0.5, -1.0], [0.5, -0.8], [-0.5, 0.2], [-0.5, 0.4], [0.1, 0.9]])
+    believer = LibraryNamer(library, labels, 3, 0.005, 1e-3, chunk=2, positions=positions)
+    beliefs = believer.beliefs(chosen, readings)
+    assert beliefs.shape == (3, 2, 3 + 4)
+    torch.testing.assert_close(beliefs[..., :3], log_p.exp(), atol=1e-6, rtol=0)
+    # after a 10.2 cm touch on candidate 0: library episodes 0 and 1 (10 and 11 cm) weighed by their Gaussians, the
+    # others a mismatch (1e-3) away
+    w = torch.softmax(torch.tensor([-0.5 * 0.4 ** 2, -0.5 * 1.6 ** 2] + [math.log(1e-3)] * 3), 0)
+    x, y = positions.T
+    expected = torch.stack([w @ y, (w @ (y - w @ y) ** 2).sqrt(), w @ x, w[[0, 1, 4]].sum()])
+    torch.testing.assert_close(beliefs[0, 0, 3:], expected, atol=1e-5, rtol=0)
+    assert expected[0] < -0.9 and expected[3] > 0.99  # mostly where episodes 0 and 1 lie: along -y, to +x
+    log_w = torch.zeros(3, 5)  # the rollout's incremental form reads the same
+    for k in range(2):
+        torch.testing.assert_close(believer.belief(believer.update(log_w, chosen[:, k], readings[:, k])), beliefs[:, k])
+    with pytest.raises(ValueError, match=r"LibraryNamer: positions \(5, 3\), expected \(5, 2\)"):
+        LibraryNamer(library, labels, 3, 0.005, 1e-3, positions=torch.zeros(5, 3))
+    with pytest.raises(ValueError, match="built without its library's positions"):
+        namer.belief(log_w)
 
 
 def test_log_likelihood_in_place_is_the_plain_formula_to_the_bit() -> None:

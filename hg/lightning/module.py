@@ -16,7 +16,7 @@ from hg.nets import (PCRN, AlongLineClassifier, Baseline, CandidateLocationNetwo
                      LinearClassifier, LocationNetwork, LSTMEncoder, NClassClassifier, TouchSetClassifier, left_of_line,
                      reflect)
 from hg.sim import ProbeSimulator, candidate_requests
-from hg.sim.library import MISS, teacher_library
+from hg.sim.library import MISS, readings, teacher_library
 from hg.sim.robot import achieved
 
 COMPONENTS = ("py", "ux", "uy", "uz")
@@ -103,6 +103,8 @@ class Rollout:
     requests: Tensor  # (B, N, 4) the requests executed: actions clipped to [-1, 1]
     points: Tensor  # (B, N, 4) X, Y, Z scaled by point_scale, and T
     reached: Tensor  # (B, N) bool: the arm achieved the request within 5 mm and 3 degrees
+    beliefs: Tensor | None = None  # (B, N, classes + 4) the library namer's belief after each probe, if a choice reads it
+    named: Tensor | None = None  # (B, N, classes) the library namer's log posterior after each probe, weighed with them
 
 
 def pick_view(views: Tensor, mirrored: Tensor) -> Tensor:
@@ -144,7 +146,8 @@ class HapticGlance(pl.LightningModule):
                  choice_reads_probes: bool = False, choice_along_line: bool = False,
                  choice_reads_state: bool = True, random_probe_share: float = 0.0,
                  along_line_classifier: bool = False, library_namer: str | None = None,
-                 library_namer_episodes: int | None = None, choice_repeats: bool = False) -> None:
+                 library_namer_episodes: int | None = None, choice_repeats: bool = False,
+                 choice_reads_belief: bool = False) -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -246,13 +249,16 @@ class HapticGlance(pl.LightningModule):
             # choice_reads_probes: beside PCRN's state, what each candidate read so far (CandidateLocationNetwork.
             # readings), and it never repeats a probe; the offline copy of the planner read this (0.962 after 10)
             readings = (3 * len(candidates) + n_probes) if choice_reads_probes else 0
-            policy_dim += readings
+            # choice_reads_belief: and, after the readings, the library namer's belief (LibraryNamer.belief)
+            believed = n_classes + 4 if choice_reads_belief else 0
+            policy_dim += readings + believed
             # choice_along_line: the choice is the same function of the readings around every place along the line
             # choice_reads_state=false: the choice reads the readings only, as the offline copy did
             self.location = CandidateLocationNetwork(policy_dim, torch.from_numpy(candidates), hidden=128,
                                                      along_line=(readings, candidate_places) if choice_along_line
                                                      else None,
-                                                     reads_from=0 if choice_reads_state else policy_dim - readings)
+                                                     reads_from=0 if choice_reads_state
+                                                     else policy_dim - readings - believed)
         else:
             raise ValueError(f"model.location={location!r}: expected 'gaussian' or 'candidates'")
         if along_line_classifier and location != "candidates":
@@ -266,6 +272,15 @@ class HapticGlance(pl.LightningModule):
         if library_namer is not None and location != "candidates":
             raise ValueError(f"model.library_namer={library_namer!r} names the readings of the planner's candidates, so "
                              f"it needs model.location: candidates, got {location!r}")
+        # beyond the paper: the choice reads what the namer believes of the probes so far (the class, where the object
+        # lies along the line and across it), the summary of the library the planner it copies weighs its candidates
+        # by; offline that closed half the copy's gap to its teacher after 5 probes (copy_planner.py --belief)
+        if choice_reads_belief and (location != "candidates" or library_namer is None or choice_along_line
+                                    or mirror_encoder):
+            raise ValueError("model.choice_reads_belief=true reads the library namer's belief, so it needs "
+                             "model.location: candidates, model.library_namer, model.choice_along_line: false and "
+                             f"model.mirror_encoder: false, got location={location!r}, library_namer={library_namer!r}, "
+                             f"choice_along_line={choice_along_line}, mirror_encoder={mirror_encoder}")
         if library_namer_episodes is not None and (library_namer is None or library_namer_episodes < 1):
             raise ValueError(f"model.library_namer_episodes={library_namer_episodes}: must be >= 1, and needs "
                              "model.library_namer")
@@ -391,6 +406,23 @@ class HapticGlance(pl.LightningModule):
                                      "candidate_span, candidate_leans must be the teacher's)") from None
         if self.hparams.library_namer and self.library_namer is None:
             self.library_namer = self.build_library_namer(self.hparams.library_namer, data)
+        if self.hparams.choice_reads_belief and self.teacher is not None and "beliefs" not in self.teacher:
+            self.teacher["beliefs"] = self.teacher_beliefs(data)
+
+    def teacher_beliefs(self, data) -> Tensor:
+        """(E, N, classes + 4) the library namer's belief after each probe of the teacher's episodes, read in ideal
+        mode as the teacher's planner read them: its copy learns each choice beside the belief the planner chose it
+        from. Once, in setup (about as long as naming the episodes: the namer weighs its whole library at every
+        probe, too slow for every training step)."""
+        teacher = self.teacher
+        if teacher["faults"] is not None:
+            raise ValueError(f"model.choice_reads_belief: the teachers {list(self.hparams.imitate)} read under sensor "
+                             "faults; their beliefs are read fault-free only")
+        labels, poses = teacher["labels"].numpy(), teacher["poses"].numpy()
+        chosen = self.location.index_of(teacher["requests"])
+        with ProbeSimulator(data.object_set, 1024, data.scene, "ideal", seed=0) as sim:
+            read = torch.from_numpy(readings(sim, labels, poses, self.location.candidates.cpu().numpy()))
+        return self.library_namer.beliefs(chosen, read.gather(1, chosen)).cpu()
 
     def build_library_namer(self, path: str, data) -> LibraryNamer:
         """The namer of the teacher file `path`'s planner over its library, read here in ideal mode as the planner
@@ -412,22 +444,28 @@ class HapticGlance(pl.LightningModule):
                 raise ValueError(f"model.library_namer: {path}: meta {field}={have!r}, this model needs {want!r} "
                                  "(held-out poses must not enter the library; its candidates must be the model's)")
         with ProbeSimulator(data.object_set, 1024, data.scene, "ideal", seed=0) as sim:
-            library, labels, _ = teacher_library(meta, sim, data.regions, data.n_classes, h.library_namer_episodes)
+            library, labels, positions = teacher_library(meta, sim, data.regions, data.n_classes,
+                                                         h.library_namer_episodes)
+        half_width = max(data.scene.object_y[1], data.scene.object_x[1])  # the belief's unit of position
         return LibraryNamer(torch.from_numpy(library), torch.from_numpy(labels).long(), data.n_classes,
-                            meta["sigma"], meta["mismatch"], data.noise, data.scene.probe_length).to(self.device)
+                            meta["sigma"], meta["mismatch"], data.noise, data.scene.probe_length,
+                            positions=torch.from_numpy(positions / half_width).float()).to(self.device)
 
-    def library_readings(self, rollout: Rollout) -> tuple[Tensor, Tensor]:
-        """(B, N) the candidates probed and what each read, as the planner read its candidates: how far from its
-        requested entry point it touched (metres), MISS where nothing was touched."""
-        chosen = self.location.index_of(rollout.actions)
+    def library_readings(self, actions: Tensor, points: Tensor) -> tuple[Tensor, Tensor]:
+        """(B, N) the candidates probed (actions (B, N, 4)) and what each read (points (B, N, 4), as a rollout
+        holds them), as the planner read its candidates: how far from its requested entry point it touched (metres),
+        MISS where nothing was touched."""
+        chosen = self.location.index_of(actions)
         entries = torch.from_numpy(self.sim.scene.request_to_probe(self.location.candidates.cpu().numpy())[0])
-        entries = entries.to(rollout.points)[chosen]
-        distance = (rollout.points[..., :3] / self.hparams.point_scale - entries).norm(dim=-1)
-        return chosen, torch.where(rollout.points[..., 3] > 0.5, distance, MISS)
+        entries = entries.to(points)[chosen]
+        distance = (points[..., :3] / self.hparams.point_scale - entries).norm(dim=-1)
+        return chosen, torch.where(points[..., 3] > 0.5, distance, MISS)
 
     def library_log_posterior(self, rollout: Rollout) -> Tensor:
-        """(B, N, classes) the library namer's log posterior after each probe."""
-        return self.library_namer(*self.library_readings(rollout))
+        """(B, N, classes) the library namer's log posterior after each probe (the rollout's, if it named them)."""
+        if rollout.named is not None:
+            return rollout.named
+        return self.library_namer(*self.library_readings(rollout.actions, rollout.points))
 
     def teardown(self, stage: str) -> None:
         if self.sim is not None:
@@ -436,9 +474,11 @@ class HapticGlance(pl.LightningModule):
 
     # -- rollout -------------------------------------------------------------------------------------
     def next_actions(self, k: int, points: Tensor, rep_sum: Tensor | None, deterministic: bool | Tensor,
-                     generator: torch.Generator, follow_scan: bool = False, actions: Tensor | None = None) -> Tensor:
+                     generator: torch.Generator, follow_scan: bool = False, actions: Tensor | None = None,
+                     beliefs: Tensor | None = None) -> Tensor:
         """Request k + 1 of every episode (k may be 0), given the points (B, N, 4) of the rollout so far and the
-        actions (B, N, 4) that probed them (only [:, :k] are read; actions only by a choice reading the probes); a
+        actions (B, N, 4) that probed them (only [:, :k] are read; actions only by a choice reading the probes,
+        beliefs (B, N, classes + 4) the namer's after each probe only by one reading them); a
         learned policy reads the sum of the representations after probes 1..k, which the rollout keeps running
         ((V, B, D), one per view of encoder_views()). follow_scan: the fixed scan, whatever the policy."""
         policy, batch = self.hparams.policy, len(points)
@@ -449,7 +489,7 @@ class HapticGlance(pl.LightningModule):
         extra = exclude = None
         if k > 0:  # what probes 1..k read, beside PCRN's state
             extra, exclude = self.policy_extra(None if actions is None else actions[:, :k], points[:, :k],
-                                               last_only=True)
+                                               last_only=True, beliefs=None if beliefs is None else beliefs[:, :k])
             extra, exclude = (None if t is None else t[:, -1] for t in (extra, exclude))
         mirrored = self.mirrored_states(points[:, :k + 1])[:, k].to(self.device)  # the policy acts in that view
         state = self.location.state(None if rep_sum is None else pick_view(rep_sum, mirrored), k, batch_size=batch,
@@ -461,11 +501,12 @@ class HapticGlance(pl.LightningModule):
         return reflect(action, 1, where=mirrored)
 
     def policy_extra(self, actions: Tensor | None, points: Tensor, last_only: bool = False,
-                     pooled: Tensor | None = None, readings: tuple[Tensor, Tensor] | None = None
-                     ) -> tuple[Tensor | None, Tensor | None]:
+                     pooled: Tensor | None = None, readings: tuple[Tensor, Tensor] | None = None,
+                     beliefs: Tensor | None = None) -> tuple[Tensor | None, Tensor | None]:
         """Beyond the paper, what the policy reads beside PCRN's state: row j, after probes 1..j + 1 of the
         actions and points (B, K, 4) -> features (B, K, E) (the touch set's pooled ones, detached, and / or a
-        choice's readings by candidate) or None, and the candidates probed (B, K, C) the choice excludes, or None.
+        choice's readings by candidate, then the namer's beliefs (B, K, classes + 4) after the same probes, which
+        the rollout keeps) or None, and the candidates probed (B, K, C) the choice excludes, or None.
         last_only: row K - 1 only (K = 1 in the outputs), what a probe loop reads. pooled, readings: the touch set's
         features and the choice's readings (CandidateLocationNetwork.readings) of every row, if computed already."""
         h, features, exclude = self.hparams, [], None
@@ -479,6 +520,10 @@ class HapticGlance(pl.LightningModule):
             readings, exclude = readings
             features.append(readings[:, -1:] if last_only else readings)
             exclude = None if h.choice_repeats else exclude[:, -1:] if last_only else exclude
+        if h.choice_reads_belief:
+            if beliefs is None:
+                raise ValueError("model.choice_reads_belief: the rollout holds no beliefs of the library namer")
+            features.append((beliefs[:, -1:] if last_only else beliefs).to(self.device))
         return (torch.cat(features, -1) if features else None), exclude
 
     def prior_offsets(self, points: Tensor) -> Tensor | None:
@@ -629,11 +674,15 @@ class HapticGlance(pl.LightningModule):
 
     @torch.no_grad()
     def rollout(self, labels: Tensor, poses: Tensor, seed: int, deterministic: bool | Tensor = False,
-                follow_scan: bool = False, requests: Tensor | None = None, faults: Tensor | None = None) -> Rollout:
+                follow_scan: bool = False, requests: Tensor | None = None, faults: Tensor | None = None,
+                beliefs: Tensor | None = None) -> Rollout:
         """Probe B episodes N times with the current policy (or the fixed scan: follow_scan, or the given (B, N, 4)
         requests: a teacher's, or some episodes' with the others' rows NaN, left to the policy); the batch seed
         drives sampling and sensor noise, or the sensor's faults are the given (B, N, 2) uniforms (a teacher's,
-        ProbeSimulator.probe). deterministic: the mean action, in every episode or in the (B,) True ones."""
+        ProbeSimulator.probe). deterministic: the mean action, in every episode or in the (B,) True ones. A choice
+        reading the namer's belief gets the given `beliefs` (B, N, classes + 4) (a teacher's, with all its requests),
+        or the namer weighs its library after every probe as the rollout goes, and names the episodes on the way
+        (Rollout.named, which library_log_posterior then need not weigh again)."""
         sim, n = self.sim, self.hparams.n_probes
         batch = len(labels)
         sim.reset(labels.cpu().numpy(), poses.cpu().numpy(), seed=seed)
@@ -644,10 +693,16 @@ class HapticGlance(pl.LightningModule):
         requests = None if requests is None else requests.cpu()
         given = None if requests is None else torch.isfinite(requests).all(-1).all(-1)  # (B,) episodes given
         policy_probes = given is None or not given.all()
+        log_w = named = None  # the library namer's log weights after the probes so far, if a choice reads its belief
+        if self.hparams.choice_reads_belief and beliefs is None:
+            n_classes = self.library_namer.one_hot.shape[1]
+            beliefs, named = torch.zeros(batch, n, n_classes + 4), torch.zeros(batch, n, n_classes)
+            log_w = torch.zeros(batch, self.library_namer.library.shape[1], device=self.library_namer.library.device)
         for k in range(n):
             action = requests[:, k] if requests is not None else None
             if policy_probes:
-                chosen = self.next_actions(k, points, rep_sum, deterministic, generator, follow_scan, actions).cpu()
+                chosen = self.next_actions(k, points, rep_sum, deterministic, generator, follow_scan, actions,
+                                           beliefs).cpu()
                 action = chosen if action is None else torch.where(given[:, None], action, chosen)
             if not torch.isfinite(action).all():
                 raise FloatingPointError(f"non-finite probe request from the '{self.hparams.policy}' policy at probe "
@@ -658,6 +713,11 @@ class HapticGlance(pl.LightningModule):
             points[:, k, :3] *= self.hparams.point_scale  # the policy must see what evaluate() will see
             if sim.arm is not None:
                 reached[:, k] = torch.from_numpy(achieved(result.pose_error))
+            if log_w is not None:
+                probed, read = self.library_readings(action.clamp(-1, 1)[:, None], points[:, k:k + 1])
+                self.library_namer.update(log_w, probed[:, 0].to(log_w.device), read[:, 0].to(log_w.device))
+                beliefs[:, k] = self.library_namer.belief(log_w).cpu()
+                named[:, k] = self.library_namer.log_posterior(log_w).cpu()
             if self.hparams.policy == "learned" and not follow_scan and policy_probes and k + 1 < n:  # once
                 # (evaluate() redoes the whole sequence with gradients); the last one is never read by the policy
                 views = self.encoder_views(action.clamp(-1, 1).to(self.device),
@@ -667,7 +727,8 @@ class HapticGlance(pl.LightningModule):
                 rep, memory = torch.stack([r for r, _ in steps]), [m for _, m in steps]
                 rep_sum = rep if rep_sum is None else rep_sum + rep
         device = self.device
-        return Rollout(actions.to(device), actions.clamp(-1, 1).to(device), points.to(device), reached.to(device))
+        return Rollout(actions.to(device), actions.clamp(-1, 1).to(device), points.to(device), reached.to(device),
+                       *(None if t is None else t.to(device) for t in (beliefs, named)))
 
     def encoder_points(self, points: Tensor) -> Tensor:
         """The points as the encoder reads them: in the episode frame (the paper) or relative to the first touch."""
@@ -733,7 +794,8 @@ class HapticGlance(pl.LightningModule):
         if self.hparams.policy == "learned" and learn_policy:
             # s_k from which request k was drawn; beyond the paper, the policy may read it without training the encoder
             # and the touch set's pooled features, which learn from the cross-entropy only
-            extra, exclude = self.policy_extra(rollout.actions, rollout.points, pooled=pooled, readings=readings)
+            extra, exclude = self.policy_extra(rollout.actions, rollout.points, pooled=pooled, readings=readings,
+                                               beliefs=rollout.beliefs)
             mirrored = self.mirrored_states(rollout.points)  # the policy drew each request in its state's view
             states = self.policy_states(rep.detach() if self.hparams.policy_reads_detached else rep, mirrored, extra)
             offsets = self.prior_offsets(rollout.points)
@@ -781,7 +843,7 @@ class HapticGlance(pl.LightningModule):
         if self.hparams.policy == "learned" and not warming_up and self.hparams.mean_action_share:
             n_mean = min(round(self.hparams.mean_action_share * len(labels)), len(labels) - 1)  # >= 1 sampled
             mean_rows = torch.arange(len(labels)) < n_mean
-        poses, requests, faults, learn_policy = batch["poses"], None, None, not warming_up
+        poses, requests, faults, beliefs, learn_policy = batch["poses"], None, None, None, not warming_up
         # beyond the paper: a share of the episodes probed with distinct candidates drawn at random trains the
         # classifiers only, so that they also read probes their policy rarely sends (as it may on held-out poses)
         random_rows = None
@@ -793,10 +855,11 @@ class HapticGlance(pl.LightningModule):
             rows = (self.global_step * len(labels) + torch.arange(len(labels))) % len(self.teacher["labels"])
             labels, poses, requests = (self.teacher[k][rows].to(labels.device) for k in ("labels", "poses", "requests"))
             faults = None if self.teacher["faults"] is None else self.teacher["faults"][rows]  # what it read under noise
+            beliefs = self.teacher["beliefs"][rows] if "beliefs" in self.teacher else None  # what the namer made of it
             learn_policy = "imitate"
         rollout = self.rollout(labels, poses, int(batch["seed"]), follow_scan=warming_up and requests is None,
                                deterministic=False if mean_rows is None else mean_rows, requests=requests,
-                               faults=faults)
+                               faults=faults, beliefs=beliefs)
         held = [rows for rows in (mean_rows, random_rows) if rows is not None]  # episodes not training the policy
         terms, _ = self.evaluate(rollout, labels, learn_policy=learn_policy,
                                  sampled=~torch.stack(held).any(0).to(labels.device) if held else None)

@@ -42,18 +42,25 @@ class LibraryNamer(nn.Module):
     recipe, hg.sim.library.teacher_library, and holds ~10^5-10^6 episodes)."""
 
     def __init__(self, library: Tensor, labels: Tensor, n_classes: int, sigma: float, mismatch: float,
-                 noise: SensorNoise = SensorNoise(), probe_length: float = 1.0, chunk: int = 32) -> None:
+                 noise: SensorNoise = SensorNoise(), probe_length: float = 1.0, chunk: int = 32,
+                 positions: Tensor | None = None) -> None:
         """library (L, C) readings (hg.sim.library.MISS where nothing was touched), labels (L,); `noise` the faults
-        of the sensor whose readings it will name (log_likelihood)."""
+        of the sensor whose readings it will name (log_likelihood); positions (L, 2) where each library episode's
+        object lies (x across the line, y along it, in units of the pose range's half-width), for its `belief`."""
         super().__init__()
         if library.ndim != 2 or labels.shape != library.shape[:1]:
             raise ValueError(f"LibraryNamer: library {tuple(library.shape)} and labels {tuple(labels.shape)}, expected "
                              "(L, C) and (L,)")
+        if positions is not None and positions.shape != (len(labels), 2):
+            raise ValueError(f"LibraryNamer: positions {tuple(positions.shape)}, expected ({len(labels)}, 2)")
         missing = sorted(set(range(n_classes)) - set(labels.unique().tolist()))
         if missing:
             raise ValueError(f"LibraryNamer: the library holds no episode of class {missing}")
         order = torch.argsort(labels, stable=True)  # by class, so each class's weights are one slice
         self.register_buffer("library", library[order].T.contiguous().float(), persistent=False)  # (C, L)
+        self.register_buffer("one_hot", torch.nn.functional.one_hot(labels[order], n_classes).float(),
+                             persistent=False)
+        self.register_buffer("positions", None if positions is None else positions[order].float(), persistent=False)
         self.ends = torch.bincount(labels, minlength=n_classes).cumsum(0).tolist()
         self.sigma, self.mismatch, self.chunk = sigma, mismatch, chunk
         self.noise, self.probe_length = noise, probe_length
@@ -62,15 +69,56 @@ class LibraryNamer(nn.Module):
         """chosen (B, N) candidate indices, readings (B, N) what each read (MISS: nothing) -> (B, N, classes) log
         posteriors after probes 1..k+1 (a uniform prior over the library's episodes). ignore (B, N) bool: readings
         left out (an oracle that knows which readings the sensor corrupted, scripts/noise_ceiling.py)."""
-        out, starts = [], [0] + self.ends[:-1]
+        return self.after_each_probe(chosen, readings, self.log_posterior, ignore)
+
+    def log_posterior(self, log_w: Tensor) -> Tensor:
+        """(B, classes) log p(class | readings) of episodes whose library log weights are log_w (B, L)."""
+        starts = [0] + self.ends[:-1]
+        return torch.log_softmax(torch.stack([torch.logsumexp(log_w[:, a:b], 1) for a, b in zip(starts, self.ends)],
+                                             1), 1)
+
+    def beliefs(self, chosen: Tensor, readings: Tensor) -> Tensor:
+        """(B, N, classes + 4) the namer's belief (`belief`) after probes 1..k+1, for a choice to read."""
+        return self.after_each_probe(chosen, readings, self.belief)
+
+    def after_each_probe(self, chosen: Tensor, readings: Tensor, read, ignore: Tensor | None = None) -> Tensor:
+        """(B, N, ...) read(log_w) of the library's log weights (b, L) after each probe, (b, ...) a chunk of rows."""
+        out = []
         for rows in torch.split(torch.arange(len(chosen)), self.chunk):  # (chunk, L) weights at a time
             log_w = torch.zeros(len(rows), self.library.shape[1], device=self.library.device)
             after = []
             for k in range(chosen.shape[1]):
-                log_p = log_likelihood(readings[rows, k, None], self.library[chosen[rows, k]], self.sigma,
-                                       self.mismatch, self.noise, self.probe_length)
-                log_w += log_p if ignore is None else log_p.masked_fill(ignore[rows, k, None], 0.0)
-                by_class = torch.stack([torch.logsumexp(log_w[:, a:b], 1) for a, b in zip(starts, self.ends)], 1)
-                after.append(torch.log_softmax(by_class, 1))
+                self.update(log_w, chosen[rows, k], readings[rows, k], None if ignore is None else ignore[rows, k])
+                after.append(read(log_w))
             out.append(torch.stack(after, 1))
         return torch.cat(out)
+
+    def update(self, log_w: Tensor, chosen: Tensor, readings: Tensor, ignore: Tensor | None = None) -> Tensor:
+        """log_w (B, L) the library's log weights, in place, after one more probe per row: candidate chosen (B,)
+        that read `readings` (B,) (ignore (B,) bool: left out); `chunk` rows at a time. Returns log_w."""
+        for start in range(0, len(chosen), self.chunk):
+            rows = slice(start, start + self.chunk)  # a view of log_w, added to in place
+            log_p = log_likelihood(readings[rows, None], self.library[chosen[rows]], self.sigma, self.mismatch,
+                                   self.noise, self.probe_length)
+            log_w[rows] += log_p if ignore is None else log_p.masked_fill(ignore[rows, None], 0.0)
+        return log_w
+
+    def belief(self, log_w: Tensor) -> Tensor:
+        """(B, classes + 4) belief() of episodes whose library log weights are log_w (B, L)."""
+        if self.positions is None:
+            raise ValueError("LibraryNamer.belief: this namer was built without its library's positions")
+        return belief(log_w, self.one_hot, self.positions)
+
+
+def belief(log_w: Tensor, one_hot: Tensor, positions: Tensor) -> Tensor:
+    """(Q, classes + 4) what a namer believes of episodes whose log weights over its library are log_w (Q, L): the
+    class posterior, where along the line the object lies and how sure that is (mean and spread of the library
+    episodes' positions, weighed), its mean offset across the line and the chance it lies to +x. one_hot (L, classes)
+    the library's classes, positions (L, 2) its objects' (x across the line, y along it). What the greedy planner
+    weighs its candidates by, summed up for a choice to read (copy_planner.py --belief, model.choice_reads_belief):
+    the readings by candidate alone leave a network far from the planner's weighing of a whole library."""
+    w = torch.softmax(log_w, 1)
+    x, y = positions.T
+    mean_y = w @ y
+    spread = (w @ y.square() - mean_y.square()).clamp_min(0).sqrt()
+    return torch.cat([w @ one_hot, torch.stack([mean_y, spread, w @ x, w @ (x > 0).float()], 1)], 1)
