@@ -242,6 +242,11 @@ def test_candidate_policy_acts_among_its_candidates_in_the_view_it_read_and_lear
     model = make_model(data, location="candidates", candidate_places=5, candidate_leans=(1.0,), mirror_encoder=True)
     candidates = model.location.candidates
     assert candidates.shape == (15, 4)
+    # lean the untrained choice towards the middle place's probe leaning to -x (in each state's view), so that some
+    # episodes touch to -x whatever near-ties the initial logits hold on this CPU
+    to_minus_x = int(((candidates[:, 0] == 0) & (candidates[:, 1] < 0)).nonzero()[0, 0])
+    with torch.no_grad():
+        model.location.net[-1].bias[to_minus_x] += 3.0
     batch = first_batch(data)
     for deterministic in (False, True):
         rollout = model.rollout(batch["labels"], batch["poses"], 1, deterministic=deterministic)

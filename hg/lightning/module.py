@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, get_args
@@ -9,6 +10,7 @@ from typing import Literal, get_args
 import pytorch_lightning as pl
 import torch
 import torch.nn.functional as F
+from pytorch_lightning.utilities import rank_zero_info
 from torch import Tensor
 
 from hg.lightning.data import load_teacher, teacher_meta
@@ -407,7 +409,11 @@ class HapticGlance(pl.LightningModule):
         if self.hparams.library_namer and self.library_namer is None:
             self.library_namer = self.build_library_namer(self.hparams.library_namer, data)
         if self.hparams.choice_reads_belief and self.teacher is not None and "beliefs" not in self.teacher:
+            start = time.time()
+            rank_zero_info(f"model.choice_reads_belief: the namer weighs its {self.library_namer.library.shape[1]} "
+                           f"library episodes at every probe of the teacher's {len(self.teacher['labels'])} (once)")
             self.teacher["beliefs"] = self.teacher_beliefs(data)
+            rank_zero_info(f"model.choice_reads_belief: the teacher's beliefs read in {time.time() - start:.0f} s")
 
     def teacher_beliefs(self, data) -> Tensor:
         """(E, N, classes + 4) the library namer's belief after each probe of the teacher's episodes, read in ideal
