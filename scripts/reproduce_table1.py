@@ -585,9 +585,12 @@ def main() -> None:
             start = time.time()
             with open(log, "a") as stream:
                 code = subprocess.run(command, stdout=stream, stderr=subprocess.STDOUT, env=env, cwd=ROOT).returncode
-            print(f"{run_name(row, seed)}: {'done' if code == 0 else f'FAILED (exit {code}), see {log}'} "
-                  f"in {time.time() - start:.0f} s", flush=True)
-            return code
+            # a child stopped by SIGTERM leaves Lightning's fit with exit 0 and no result: not done
+            written = (args.out / "runs" / f"{run_name(row, seed)}.json").is_file()
+            state = ("done" if written else f"stopped before writing its result, see {log}") if code == 0 else \
+                f"FAILED (exit {code}), see {log}"
+            print(f"{run_name(row, seed)}: {state} in {time.time() - start:.0f} s", flush=True)
+            return code if code or written else 1
 
         failed = 0
         for scoring in (False, True):  # the rows that score other rows' checkpoints after those rows

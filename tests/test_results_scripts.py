@@ -160,6 +160,7 @@ def test_table_row_trains_once_is_reused_and_feeds_the_noise_study(tmp_path):
             "--runs-dir", str(tmp_path / "ckpt")]
     first = run("reproduce_table1", *args)
     assert first.returncode == 0, first.stdout[-2000:] + first.stderr[-2000:]
+    assert "pcrn_fc-seed0: done in" in first.stdout  # its result written (a child stopped before that is not done)
     record = json.loads((tmp_path / "runs" / "pcrn_fc-seed0.json").read_text())
     assert len(record["accuracy"]) == len(record["accuracy_mean_action"]) == 10
     assert all(0 <= a <= 1 for a in record["accuracy"])
