@@ -125,19 +125,25 @@ def teacher(tmp_path_factory):
     return path
 
 
-@pytest.mark.parametrize("location, reads_probes", [("gaussian", False), ("candidates", False), ("candidates", True)])
-def test_imitation_warmup_probes_where_the_teacher_chose_and_copies_its_requests(data, teacher, location, reads_probes):
-    model = make_model(data, policy_warmup_steps=30, imitate=(str(teacher),), location=location,
-                       choice_reads_probes=reads_probes)
+def imitation_losses(model, data, steps):
+    """Fit `model` for `steps` steps of its teacher's episodes (no validation); its imitation loss at each step."""
     losses = []
 
     class Record(pl.Callback):
         def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
             losses.append(float(trainer.callback_metrics["train/loss_imitation"]))
 
-    trainer = pl.Trainer(max_steps=30, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+    trainer = pl.Trainer(max_steps=steps, logger=False, enable_checkpointing=False, enable_progress_bar=False,
                          enable_model_summary=False, limit_val_batches=0, accelerator="cpu", callbacks=[Record()])
     trainer.fit(model, datamodule=data)
+    return losses
+
+
+@pytest.mark.parametrize("location, reads_probes", [("gaussian", False), ("candidates", False), ("candidates", True)])
+def test_imitation_warmup_probes_where_the_teacher_chose_and_copies_its_requests(data, teacher, location, reads_probes):
+    model = make_model(data, policy_warmup_steps=30, imitate=(str(teacher),), location=location,
+                       choice_reads_probes=reads_probes)
+    losses = imitation_losses(model, data, 30)
     assert len(losses) == 30 and np.mean(losses[-5:]) < 0.8 * np.mean(losses[:5])  # the policy moves to the teacher
     episodes = model.teacher
     assert len(episodes["labels"]) == 32 and (data.regions.split_of(episodes["poses"].numpy()) == 0).all()
@@ -158,15 +164,7 @@ def test_a_choice_reading_the_namers_belief_reads_it_from_the_teachers_episodes_
     model = make_model(data, policy_warmup_steps=30, imitate=(str(teacher),), location="candidates",
                        choice_reads_probes=True, choice_reads_state=False, library_namer=str(teacher),
                        choice_reads_belief=True)
-    losses = []
-
-    class Record(pl.Callback):
-        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
-            losses.append(float(trainer.callback_metrics["train/loss_imitation"]))
-
-    trainer = pl.Trainer(max_steps=30, logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                         enable_model_summary=False, limit_val_batches=0, accelerator="cpu", callbacks=[Record()])
-    trainer.fit(model, datamodule=data)
+    losses = imitation_losses(model, data, 30)
     assert len(losses) == 30 and np.mean(losses[-5:]) < 0.8 * np.mean(losses[:5])
     beliefs = model.teacher["beliefs"]
     assert beliefs.shape == (32, data.n_probes, data.n_classes + 4)
