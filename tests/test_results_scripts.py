@@ -157,7 +157,9 @@ def test_table_merge_refuses_runs_scored_on_different_test_episodes(tmp_path):
 
 def test_table_row_trains_once_is_reused_and_feeds_the_noise_study(tmp_path):
     args = ["--rows", "pcrn_fc", "--seeds", "0", "--steps", "2", "--test-episodes", "64", "--out", str(tmp_path),
-            "--runs-dir", str(tmp_path / "ckpt")]
+            "--runs-dir", str(tmp_path / "ckpt"), "--threads", "1"]
+    assert run("reproduce_table1", *args[:-1], "0").returncode != 0  # --threads 0 refused before anything runs
+    assert not (tmp_path / "runs").exists()
     first = run("reproduce_table1", *args)
     assert first.returncode == 0, first.stdout[-2000:] + first.stderr[-2000:]
     assert "pcrn_fc-seed0: done in" in first.stdout  # its result written (a child stopped before that is not done)
@@ -165,6 +167,7 @@ def test_table_row_trains_once_is_reused_and_feeds_the_noise_study(tmp_path):
     assert len(record["accuracy"]) == len(record["accuracy_mean_action"]) == 10
     assert all(0 <= a <= 1 for a in record["accuracy"])
     assert record["test_episodes"] == 64 and record["max_steps"] == 2
+    assert record["torch_threads"] == 1  # as asked, not cores / jobs
     assert (tmp_path / "ckpt" / "pcrn_fc-seed0" / "checkpoints" / "last.ckpt").is_file()
     second = run("reproduce_table1", *args)
     assert second.returncode == 0 and "0 runs to train" in second.stdout
