@@ -25,6 +25,7 @@ def test_bad_input_gives_one_line(tmp_path, args, field):
                           env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode != 0
     assert "Traceback" not in proc.stderr
+    assert "args parameter" not in proc.stderr  # the command line is read once, so Lightning has nothing to warn of
     errors = [line for line in proc.stderr.splitlines() if "error" in line.lower() and field in line]
     assert errors, proc.stderr[-2000:]
 

@@ -89,7 +89,7 @@ def datamodule_from_checkpoint(ckpt: str | Path, configs: list[str] = (), args: 
 def main() -> None:
     """Bad input ends in one line naming the field or file, and a non-zero exit (HG_TRACEBACK=1 for the wall)."""
     try:
-        cli(sys.argv[1:])
+        cli()  # the CLI reads sys.argv itself; passing it as args too makes Lightning warn on every command
     except (ValueError, FileNotFoundError, FloatingPointError) as exc:
         if os.environ.get("HG_TRACEBACK"):
             raise
