@@ -65,3 +65,17 @@ def test_killed_fit_resumes_to_the_same_result(tmp_path, reference, sig):
         torch.testing.assert_close(state[key], value, msg=f"{key} differs after resume")
     # the learning curve continues across the kill: the same rows, every validation once
     assert (tmp_path / "val_curve.csv").read_text() == reference[2] and reference[2].count("\n") == 1 + STEPS // 50
+
+
+def test_a_run_stopped_right_after_a_validation_resumes_knowing_its_score(tmp_path):
+    """last.ckpt is written at the end of step 50, before the validation at step 50: it must be written again
+    after it, or a resume forgets that score and may test a worse checkpoint as the best."""
+    fit(tmp_path, "--trainer.max_steps", "50", "--last_checkpoint.every_n_train_steps", "10")
+    checkpoint = torch.load(last_checkpoint(tmp_path), weights_only=False)
+    assert checkpoint["global_step"] == 50
+    best = [state for key, state in checkpoint["callbacks"].items() if "'monitor': 'val/acc'" in key]
+    assert len(best) == 1 and best[0]["best_model_score"] is not None
+    assert best[0]["best_model_path"].endswith("best-step50.ckpt")
+    # the resumable callback keeps a plain ModelCheckpoint's state key, as checkpoints from before it have
+    latest = [key for key in checkpoint["callbacks"] if "'every_n_train_steps': 10" in key]
+    assert len(latest) == 1 and latest[0].startswith("ModelCheckpoint{"), list(checkpoint["callbacks"])

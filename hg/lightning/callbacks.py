@@ -1,5 +1,6 @@
 """Callbacks: per-probe accuracy files and plots, the run configuration saved where the run lives, a moving
-average of the weights, and a training clock that survives resuming."""
+average of the weights, a training clock that survives resuming, and a resumable checkpoint that knows the last
+validation."""
 from __future__ import annotations
 
 import csv
@@ -14,7 +15,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import pytorch_lightning as pl  # noqa: E402
 import yaml  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
-from pytorch_lightning.callbacks import WeightAveraging  # noqa: E402
+from pytorch_lightning.callbacks import ModelCheckpoint, WeightAveraging  # noqa: E402
 from pytorch_lightning.cli import SaveConfigCallback  # noqa: E402
 from pytorch_lightning.loggers import WandbLogger  # noqa: E402
 from pytorch_lightning.trainer.states import TrainerFn  # noqa: E402
@@ -43,6 +44,24 @@ def per_probe_table(metrics: dict, stage: str, n_probes: int) -> dict[str, list[
         if all(k in metrics for k in keys):
             columns[label] = [float(metrics[k]) for k in keys]
     return columns
+
+
+class LatestCheckpoint(ModelCheckpoint):
+    """The checkpoint a run resumes from (last.ckpt, and latest-step{N}). Lightning writes it at the end of a training
+    step, before a validation at that step, and not again after it; so a run stopped right after a validation
+    resumed without that validation's score in the best-by-val callback's state, and could test a worse checkpoint
+    as its best. Written again after each validation here."""
+
+    def on_validation_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        super().on_validation_end(trainer, pl_module)
+        if (trainer.state.fn == TrainerFn.FITTING and not trainer.sanity_checking and not trainer.fast_dev_run
+                and self._last_global_step_saved == trainer.global_step):  # saved at this step, before validating
+            self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
+
+    @property
+    def state_key(self) -> str:
+        """A plain ModelCheckpoint's key, so that checkpoints written before this class resume the same."""
+        return super().state_key.replace(type(self).__qualname__, ModelCheckpoint.__qualname__, 1)
 
 
 class PerProbeAccuracy(pl.Callback):

@@ -15,7 +15,7 @@ import yaml
 from pytorch_lightning.callbacks import ModelCheckpoint
 from pytorch_lightning.cli import LightningArgumentParser, LightningCLI
 
-from hg.lightning.callbacks import PerProbeAccuracy, RunDirSaveConfig, TrainingClock
+from hg.lightning.callbacks import LatestCheckpoint, PerProbeAccuracy, RunDirSaveConfig, TrainingClock
 from hg.lightning.data import ProbeDataModule
 from hg.lightning.module import HapticGlance
 from hg.lightning.viz import ProbeMaps
@@ -40,7 +40,7 @@ class HapticCLI(LightningCLI):
         parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
         parser.set_defaults({"checkpoint.monitor": "val/acc", "checkpoint.mode": "max",
                              "checkpoint.filename": "best-step{step}", "checkpoint.auto_insert_metric_name": False})
-        parser.add_lightning_class_args(ModelCheckpoint, "last_checkpoint")
+        parser.add_lightning_class_args(LatestCheckpoint, "last_checkpoint")
         parser.set_defaults({"last_checkpoint.save_last": True, "last_checkpoint.every_n_train_steps": 100,
                              "last_checkpoint.filename": "latest-step{step}",
                              "last_checkpoint.auto_insert_metric_name": False})
