@@ -54,11 +54,15 @@ class HapticCLI(LightningCLI):
 
 
 def cli(args: list[str] | None = None, run: bool = True) -> HapticCLI:
+    """The CLI over `args`, or the command line when None. Given args are a script's own (main_job.py,
+    reproduce_table1.py), not its command line: Lightning's warning about both is beside the point there."""
     os.environ.setdefault("WANDB_MODE", "offline")  # no internet here: runs are synced later with `wandb sync`
-    return HapticCLI(HapticGlance, ProbeDataModule, seed_everything_default=0, trainer_defaults=TRAINER_DEFAULTS,
-                     save_config_callback=RunDirSaveConfig, save_config_kwargs={"save_to_log_dir": False,
-                                                                                 "overwrite": True},
-                     args=args, run=run)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
+        return HapticCLI(HapticGlance, ProbeDataModule, seed_everything_default=0, trainer_defaults=TRAINER_DEFAULTS,
+                         save_config_callback=RunDirSaveConfig, save_config_kwargs={"save_to_log_dir": False,
+                                                                                     "overwrite": True},
+                         args=args, run=run)
 
 
 LINK_TARGETS = ("seed", "_instantiator")  # data.seed comes from seed_everything in the CLI
@@ -79,9 +83,7 @@ def datamodule_from_checkpoint(ckpt: str | Path, configs: list[str] = (), args: 
     for path in configs:
         argv += ["--config", str(path)]
     try:
-        with warnings.catch_warnings():  # our own argv is not the CLI's: its warning about both is beside the point
-            warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
-            return cli([*argv, *args, "--trainer.logger", "false"], run=False).datamodule
+        return cli([*argv, *args, "--trainer.logger", "false"], run=False).datamodule
     finally:
         Path(tmp.name).unlink()
 
@@ -89,7 +91,7 @@ def datamodule_from_checkpoint(ckpt: str | Path, configs: list[str] = (), args: 
 def main() -> None:
     """Bad input ends in one line naming the field or file, and a non-zero exit (HG_TRACEBACK=1 for the wall)."""
     try:
-        cli()  # the CLI reads sys.argv itself; passing it as args too makes Lightning warn on every command
+        cli()
     except (ValueError, FileNotFoundError, FloatingPointError) as exc:
         if os.environ.get("HG_TRACEBACK"):
             raise
