@@ -1,10 +1,11 @@
-"""Callbacks: per-probe accuracy files and plots, the run configuration saved where the run lives, a moving
-average of the weights, a training clock that survives resuming, and a resumable checkpoint that knows the last
-validation."""
+"""Callbacks: per-probe accuracy files and plots, the run configuration saved where the run lives, the schedules of
+the policy's std and of the learning rate, a training clock that survives resuming, and a resumable checkpoint that
+knows the last validation."""
 from __future__ import annotations
 
 import csv
 import io
+import math
 import time
 from pathlib import Path
 
@@ -15,12 +16,11 @@ import matplotlib.pyplot as plt  # noqa: E402
 import pytorch_lightning as pl  # noqa: E402
 import yaml  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
-from pytorch_lightning.callbacks import ModelCheckpoint, WeightAveraging  # noqa: E402
+from pytorch_lightning.callbacks import ModelCheckpoint  # noqa: E402
 from pytorch_lightning.cli import SaveConfigCallback  # noqa: E402
 from pytorch_lightning.loggers import WandbLogger  # noqa: E402
 from pytorch_lightning.trainer.states import TrainerFn  # noqa: E402
 from pytorch_lightning.utilities import rank_zero_only  # noqa: E402
-from torch.optim.swa_utils import get_ema_multi_avg_fn  # noqa: E402
 
 from hg.atomic import write_atomic  # noqa: E402
 
@@ -106,13 +106,13 @@ class PerProbeAccuracy(pl.Callback):
         writer.writerows(rows)
         write_atomic(folder / "per_probe_accuracy.csv", text.getvalue())
         plot_path = folder / "per_probe_accuracy.png"
-        write_atomic(plot_path, accuracy_plot({f"{pl_module.hparams.policy} ({label} rollout)": values
+        write_atomic(plot_path, accuracy_plot({f"{type(pl_module.policy).__name__} ({label} rollout)": values
                                                for label, values in columns.items()}))
         if isinstance(trainer.logger, WandbLogger):
             trainer.logger.log_table("test/per_probe_accuracy", columns=["probes", *columns], data=rows)
             trainer.logger.log_image("test/per_probe_accuracy_plot", images=[str(plot_path)])
         header = "probes | " + " | ".join(f"{c:>11s}" for c in columns)
-        print(f"\nTest accuracy after each probe (single rollout, {pl_module.hparams.policy} policy):\n{header}")
+        print(f"\nTest accuracy after each probe (single rollout, {type(pl_module.policy).__name__} policy):\n{header}")
         for row in rows:
             print(f"{row[0]:6d} | " + " | ".join(f"{v:11.3f}" for v in row[1:]))
         print(f"written: {folder / 'per_probe_accuracy.csv'}, {plot_path}")
@@ -180,39 +180,56 @@ class RunDirSaveConfig(SaveConfigCallback):
                 trainer.logger.log_hyperparams({"config": yaml.safe_load(config)})
 
 
-class WeightEMA(WeightAveraging):
-    """Beyond the paper: validate, test and checkpoint an exponential moving average of the weights (`decay` per
-    step), Lightning's WeightAveraging. Why: fed fresh episodes at a constant learning rate, the model keeps
-    moving, its validation accuracy swings from one check to the next, and the best checkpoint is picked on those
-    swings. A checkpoint's state_dict holds the average (the live weights ride along for resuming), so `hg test`
-    and the scripts score the average. Buffers are not averaged but copied: the policy's std scale must be the
-    schedule's current one. Add it to a config's `trainer.callbacks`."""
+def schedule_end(trainer: pl.Trainer, name: str) -> int:
+    """trainer.max_steps, where a schedule ends; refuses an endless run."""
+    last = trainer.max_steps
+    if last is None or last < 1:
+        raise ValueError(f"{name}.final_scale needs trainer.max_steps (the schedule ends there), got {last}")
+    return last
 
-    def __init__(self, decay: float = 0.999) -> None:
-        if not 0.0 < decay < 1.0:
-            raise ValueError(f"WeightEMA decay={decay}: must be in (0, 1) (the share of the average kept per step)")
-        super().__init__(use_buffers=False, multi_avg_fn=get_ema_multi_avg_fn(decay))
 
-    def on_train_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs, batch,
-                           batch_idx: int) -> None:
-        super().on_train_batch_end(trainer, pl_module, outputs, batch, batch_idx)
-        for average, current in zip(self._average_model.module.buffers(), pl_module.buffers()):
-            average.copy_(current)
+class StdDecay(pl.Callback):
+    """Beyond the paper: the learned policy's std (a choice's temperature) falls linearly from 1 when the policy
+    starts learning (after any warm-up) to `final_scale` of its learned value at the last step, so that the policy
+    explores early and the classifier ends up trained behind the steady probes it is tested with. 1: no decay."""
 
-    # Lightning's callback also swaps and reloads outside fitting: a `trainer.test(ckpt_path=...)` after `fit` (as
-    # hg/lightning/experiment.py does) would load the checkpoint's live weights over its average, and a validate
-    # would swap in the average left from training. Outside fitting the module keeps what the checkpoint holds.
-    def _fitting(self, trainer: pl.Trainer) -> bool:
-        return trainer.state.fn == TrainerFn.FITTING
+    def __init__(self, final_scale: float = 1.0) -> None:
+        if not 0.0 < final_scale <= 1.0:
+            raise ValueError(f"std_decay.final_scale={final_scale}: must be in (0, 1]")
+        self.final_scale = final_scale
 
-    def on_validation_epoch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
-        if self._fitting(trainer):
-            super().on_validation_epoch_start(trainer, pl_module)
+    def scale(self, step: int, start: int, last: int) -> float:
+        # a run that ends within the warm-up never trains the policy: it is tested at the final std
+        progress = min(max((step - start) / (last - start), 0.0), 1.0) if last > start else 1.0
+        return 1.0 + (self.final_scale - 1.0) * progress
 
-    def on_validation_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
-        if self._fitting(trainer):
-            super().on_validation_epoch_end(trainer, pl_module)
+    def on_train_batch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule, batch, batch_idx: int) -> None:
+        if self.final_scale != 1.0 and pl_module.policy.learned:
+            last = schedule_end(trainer, "std_decay")
+            pl_module.policy.std_scale.fill_(self.scale(trainer.global_step, pl_module.policy_start, last))
 
-    def on_load_checkpoint(self, trainer: pl.Trainer, pl_module: pl.LightningModule, checkpoint: dict) -> None:
-        if self._fitting(trainer):  # resuming: the live weights and the average both come back
-            super().on_load_checkpoint(trainer, pl_module, checkpoint)
+
+class CosineLR(pl.Callback):
+    """Beyond the paper: every learning rate falls along a half cosine to `final_scale` of itself at the last step: a
+    classifier fed fresh episodes every step keeps some of the noise of its last updates unless the steps shrink.
+    1: a constant learning rate."""
+
+    def __init__(self, final_scale: float = 1.0) -> None:
+        if not 0.0 < final_scale <= 1.0:
+            raise ValueError(f"lr_decay.final_scale={final_scale}: must be in (0, 1]")
+        self.final_scale = final_scale
+        self.base: list[float] | None = None
+
+    def on_train_batch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule, batch, batch_idx: int) -> None:
+        if self.final_scale == 1.0:
+            return
+        last = schedule_end(trainer, "lr_decay")
+        optimizer = trainer.optimizers[0]
+        if self.base is None:  # each group's own rate (the policy's may be scaled), from the module's settings
+            lr = pl_module.hparams.lr
+            self.base = [lr if i == 0 else lr * pl_module.hparams.policy_lr_scale
+                         for i in range(len(optimizer.param_groups))]
+        final = self.final_scale
+        factor = final + (1.0 - final) * 0.5 * (1.0 + math.cos(math.pi * min(trainer.global_step / last, 1.0)))
+        for group, base in zip(optimizer.param_groups, self.base):
+            group["lr"] = base * factor

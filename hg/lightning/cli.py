@@ -15,7 +15,7 @@ import yaml
 from pytorch_lightning.callbacks import ModelCheckpoint
 from pytorch_lightning.cli import LightningArgumentParser, LightningCLI
 
-from hg.lightning.callbacks import LatestCheckpoint, PerProbeAccuracy, RunDirSaveConfig, TrainingClock
+from hg.lightning.callbacks import CosineLR, LatestCheckpoint, PerProbeAccuracy, RunDirSaveConfig, StdDecay, TrainingClock
 from hg.lightning.data import ProbeDataModule
 from hg.lightning.module import HapticGlance
 from hg.lightning.viz import ProbeMaps
@@ -47,6 +47,8 @@ class HapticCLI(LightningCLI):
         parser.add_lightning_class_args(PerProbeAccuracy, "per_probe_accuracy")
         parser.add_lightning_class_args(ProbeMaps, "probe_maps")  # heat maps and confusion matrices at test end
         parser.add_lightning_class_args(TrainingClock, "training_clock")  # training time over resumed attempts
+        parser.add_lightning_class_args(StdDecay, "std_decay")  # schedules: off (final_scale 1) unless a config sets them
+        parser.add_lightning_class_args(CosineLR, "lr_decay")
         parser.link_arguments("seed_everything", "data.seed")
         parser.link_arguments("data.n_probes", "model.n_probes")
         parser.link_arguments("data", "model.n_classes", compute_fn=lambda data: len(data.object_set),

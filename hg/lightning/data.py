@@ -7,7 +7,6 @@ resume exactly, and `hg test` gives the same numbers twice.
 """
 from __future__ import annotations
 
-import json
 from dataclasses import asdict
 from pathlib import Path
 
@@ -27,63 +26,6 @@ def episode_batch(regions: PoseRegions, split: str, size: int, n_classes: int, s
     labels, poses = sample_episodes(regions, split, size, n_classes, rng)
     return {"labels": torch.from_numpy(labels), "poses": torch.from_numpy(poses),
             "seed": torch.tensor(int(rng.integers(2 ** 31)))}
-
-
-def load_teacher(paths: list[str], regions: PoseRegions, objects: str, n_probes: int,
-                 noise: SensorNoise = SensorNoise()) -> Batch:
-    """A teacher's episodes for a policy to copy (model.imitate): the classes, poses and requests of the files that
-    `scripts/planner_ceiling.py --save-rollouts` writes, concatenated, and the (E, N, 2) faults its probes read with
-    ("faults", ProbeSimulator.probe; None without noise). Refuses a file made for other objects, another probe count,
-    other pose regions or another sensor (`noise`: a teacher that read other faults chose for readings the copy never
-    sees), and any episode whose pose lies outside the training region: a teacher's episodes are training data, and
-    held-out poses must not leak into them."""
-    parts = []
-    for path in paths:
-        if not Path(path).is_file():
-            raise FileNotFoundError(f"model.imitate: {path}: teacher file not found (write one with "
-                                    "scripts/planner_ceiling.py --save-rollouts)")
-        with np.load(path) as f:
-            missing = {"labels", "poses", "requests", "meta"} - set(f.files)
-            if missing:
-                raise ValueError(f"model.imitate: {path}: not a teacher file, no {sorted(missing)}")
-            labels, poses, requests, meta = f["labels"], f["poses"], f["requests"], json.loads(str(f["meta"]))
-            faults = f["faults"] if "faults" in f.files else None
-        for field, want in (("objects", objects), ("eval_seed", regions.seed)):
-            if meta.get(field) != want:
-                raise ValueError(f"model.imitate: {path}: meta {field}={meta.get(field)!r}, this run has {want!r}")
-        rate = meta.get("noise", 0.0)  # planner_ceiling.py --noise: miss and false-contact probabilities both
-        if (noise.miss_prob, noise.false_contact_prob, noise.position_std) != (rate, rate, 0.0):
-            raise ValueError(f"model.imitate: {path}: planned with sensor faults at rate {rate} (miss_prob = "
-                             f"false_contact_prob), this run's data.noise is {noise}: write a teacher with "
-                             "scripts/planner_ceiling.py --noise at the run's rate")
-        if rate and (faults is None or faults.shape != requests.shape[:2] + (2,)):
-            raise ValueError(f"model.imitate: {path}: planned under noise without its faults of shape "
-                             f"{requests.shape[:2] + (2,)}")
-        if requests.ndim != 3 or requests.shape[1:] != (n_probes, 4) or not len(labels) == len(poses) == len(requests):
-            raise ValueError(f"model.imitate: {path}: requests of shape {requests.shape} for {len(labels)} episodes, "
-                             f"expected ({len(labels)}, {n_probes}, 4) (data.n_probes={n_probes})")
-        if (outside := int((regions.split_of(poses) != SPLITS.index("train")).sum())):
-            raise ValueError(f"model.imitate: {path}: {outside} of {len(poses)} poses lie outside the training region")
-        parts.append((labels, poses, requests, faults))
-    labels, poses, requests, faults = zip(*parts)
-    return {"labels": torch.from_numpy(np.concatenate(labels)).long(), "poses": torch.from_numpy(np.concatenate(poses)),
-            "requests": torch.from_numpy(np.concatenate(requests)).float(),
-            "faults": torch.from_numpy(np.concatenate(faults)) if rate else None}  # every file's rate is the run's
-
-
-def teacher_meta(paths: list[str]) -> dict:
-    """The planner arguments the teacher files were made with; they must agree on those that shape the candidates
-    and the library, since one namer reads every sequence."""
-    metas = []
-    for path in paths:
-        with np.load(path) as f:
-            metas.append({"along_leans": []} | json.loads(str(f["meta"])))  # files from before along-line leans
-    keys = ("places", "span", "leans", "along_leans", "library", "library_split", "shifts", "mirror", "sigma",
-            "mismatch", "bin")
-    for path, meta in zip(paths[1:], metas[1:]):
-        if (differ := [k for k in keys if meta.get(k) != metas[0].get(k)]):
-            raise ValueError(f"{path}: planner arguments {differ} differ from {paths[0]}'s")
-    return metas[0]
 
 
 class TrainEpisodes(IterableDataset):
@@ -171,6 +113,13 @@ class ProbeDataModule(pl.LightningDataModule):
 
     def test_dataloader(self) -> DataLoader:
         return self._eval_loader("test", self.hparams.test_episodes)
+
+    def load_teacher(self, paths: list[str]) -> Batch:
+        """A teacher's episodes made in this world (hg.planner.load_teacher checks they were)."""
+        from hg.planner import load_teacher
+
+        return load_teacher(paths, object_set_name=self.object_set.name, scene=self.scene, regions=self.regions,
+                            n_probes=self.n_probes, noise=self.noise)
 
     def describe(self) -> dict:
         """What a results file should record about the world."""

@@ -1,8 +1,9 @@
-"""Plain torch networks of the reinforcement haptic glance framework (no Lightning here)."""
+"""Plain torch networks of the reinforcement haptic glance framework: tensors in, tensors out (no Lightning, no
+simulator)."""
 
-from hg.nets.heads import AlongLineClassifier, Baseline, FCClassifier, LinearClassifier, NClassClassifier
+from hg.nets.dims import Dims
+from hg.nets.heads import Baseline, FCClassifier, LinearClassifier, NClassClassifier
 from hg.nets.location import CandidateLocationNetwork, LocationNetwork
-from hg.nets.library import LibraryNamer
 from hg.nets.lstm import LSTMEncoder
 from hg.nets.mirror import left_of_line, reflect
 from hg.nets.mlp import cumulative_mean, mlp
@@ -11,15 +12,14 @@ from hg.nets.pcrn import PCRN
 from hg.nets.pointcloud import DGCNN, PointNet, TouchSetClassifier
 
 __all__ = [
-    "AlongLineClassifier",
     "DGCNN",
     "PCRN",
     "P2CARB",
     "Baseline",
     "CandidateLocationNetwork",
+    "Dims",
     "FCClassifier",
     "LSTMEncoder",
-    "LibraryNamer",
     "LinearClassifier",
     "LocationNetwork",
     "NClassClassifier",

@@ -54,13 +54,6 @@ class PolicyState(nn.Module):
         return torch.cat([start, summary[:, :-1]], 1)
 
 
-def refuse_exclude(exclude: Tensor | None) -> None:
-    """Only a choice among candidates can leave some out (model.choice_reads_probes); a Gaussian has none."""
-    if exclude is not None:
-        raise ValueError("LocationNetwork: a Gaussian policy cannot exclude candidates (model.choice_reads_probes "
-                         "needs model.location: candidates)")
-
-
 class LocationNetwork(PolicyState):
     """pi(a_k | s_k) over a_k = (Py, Ux, Uy, Uz), factorised as in eq. (1): component j conditions on the
     state and on components < j. One MADE network gives all components at once (teacher forcing), so the
@@ -104,12 +97,11 @@ class LocationNetwork(PolicyState):
 
     def sample(
         self, state: Tensor, deterministic: bool | Tensor = False, generator: torch.Generator | None = None,
-        offset: Tensor | None = None, exclude: Tensor | None = None,
+        offset: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Draw a_k component by component as in eq. (1); returns the raw (unsquashed, detached) action and
         its (mu, sigma). deterministic=True gives the mean-action policy; a bool tensor of the state's batch shape
         gives it in its True rows only (the others draw the same numbers as without it)."""
-        refuse_exclude(exclude)
         shape = (*state.shape[:-1], self.action_dim)
         if isinstance(deterministic, Tensor) or not deterministic:
             eps = torch.randn(shape, generator=generator, device=state.device, dtype=state.dtype)
@@ -124,16 +116,11 @@ class LocationNetwork(PolicyState):
         # The last pass already saw every component a mu_j / sigma_j may read, so (mu, sigma) belong to action.
         return action, mu, sigma
 
-    def log_prob(self, state: Tensor, action: Tensor, offset: Tensor | None = None, exclude: Tensor | None = None
-                 ) -> Tensor:
-        """log pi(a_k | s_k) summed over components, (..., D), (..., A) -> (...). The action is detached: the
-        gradient flows only through mu and sigma, which gives eq. (4)/(5) and, weighted, eq. (3)."""
-        return self.log_prob_and_moments(state, action, offset, exclude)[0]
-
-    def log_prob_and_moments(self, state: Tensor, action: Tensor, offset: Tensor | None = None,
-                             exclude: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
-        """log_prob with the (mu, sigma) it was taken under, for a caller that needs both from one pass."""
-        refuse_exclude(exclude)
+    def log_prob_and_moments(self, state: Tensor, action: Tensor, offset: Tensor | None = None
+                             ) -> tuple[Tensor, Tensor, Tensor]:
+        """log pi(a_k | s_k) summed over components, (..., D), (..., A) -> (...), with the (mu, sigma) it was taken
+        under. The action is detached: the gradient flows only through mu and sigma, which gives eq. (4)/(5) and,
+        weighted, eq. (3)."""
         action = action.detach()
         mu, sigma = self.distribution(state, action, offset)
         return torch.distributions.Normal(mu, sigma).log_prob(action).sum(-1), mu, sigma
@@ -145,75 +132,25 @@ class LocationNetwork(PolicyState):
         return (mu - action.clamp(-1, 1)).pow(2).sum(-1).mean()
 
 
-def by_place(readings: Tensor, places: int, directions: int) -> Tensor:
-    """CandidateLocationNetwork.readings' per-candidate features (B, 3C) -> (B, 3 x directions, places): channels
-    feature x direction, length the places along the line, as a 1-D convolution along the line reads them."""
-    local = readings.reshape(-1, 3, places, directions)
-    return local.permute(0, 1, 3, 2).reshape(-1, 3 * directions, places)
-
-
-class AlongLineChoice(nn.Module):
-    """Logits over candidates laid out as places along the line x directions (candidate_requests' order), the same
-    function of the readings around each place (a 1-D convolution over places; beyond the paper). The ground is
-    alike all along the line, so a pattern of touches moved one place along it asks for the same choice moved one
-    place: what the greedy planner's library gets from episodes moved along the line (planner_ceiling.py --shifts).
-    The state's last `readings` features are CandidateLocationNetwork.readings' (3 per candidate, then the probe
-    index); the rest (PCRN's state, the probe index) reaches every place alike."""
-
-    def __init__(self, in_dim: int, readings: int, places: int, directions: int, hidden: int = 64) -> None:
-        super().__init__()
-        self.places, self.directions = places, directions
-        self.local = 3 * places * directions  # per-candidate readings, placed first among the readings
-        self.first_reading = in_dim - readings  # where the readings begin in the state
-        if self.first_reading < 0 or readings < self.local:
-            raise ValueError(f"AlongLineChoice: {readings} readings in a state of {in_dim} cannot hold 3 x {places} "
-                             f"places x {directions} directions")
-        self.shared = mlp([in_dim - self.local, hidden])
-        self.conv = nn.Sequential(nn.Conv1d(3 * directions + hidden, hidden, 5, padding=2), nn.ELU(),
-                                  nn.Conv1d(hidden, hidden, 5, padding=2), nn.ELU(), nn.Conv1d(hidden, directions, 1))
-
-    def forward(self, state: Tensor) -> Tensor:
-        """(..., D) -> (..., places * directions) logits."""
-        lead, (p, d) = state.shape[:-1], (self.places, self.directions)
-        state = state.reshape(-1, state.shape[-1])
-        first, end = self.first_reading, self.first_reading + self.local
-        local = by_place(state[:, first:end], p, d)
-        rest = torch.cat([state[:, :first], state[:, end:]], -1)
-        shared = self.shared(rest)[:, :, None].expand(-1, -1, p)
-        logits = self.conv(torch.cat([local, shared], 1))  # (B, directions, places)
-        return logits.transpose(1, 2).reshape(*lead, p * d)
-
-
 class CandidateLocationNetwork(PolicyState):
     """Beyond the paper: pi(a_k | s_k) a categorical choice among fixed candidate requests (C, 4), e.g. the greedy
     planner's (hg.sim.candidate_requests). A Gaussian copying a teacher that leans to either side ends up between
-    them (docs/training.md); a choice cannot average two sides. Its temperature is std_scale, so a std schedule
+    them (docs/findings.md); a choice cannot average two sides. Its temperature is std_scale, so a std schedule
     sharpens it as it would narrow a Gaussian. The returned moments (the request's mean and std per component under
     the choice) are what the training loop logs for a Gaussian."""
 
-    def __init__(self, in_dim: int, candidates: Tensor, hidden: int = 128, along_line: tuple[int, int] | None = None,
-                 reads_from: int = 0) -> None:
-        """along_line (readings, places): the logits from AlongLineChoice, the state ending with `readings`
-        features of readings() and the candidates laid out over `places` (an MLP otherwise). reads_from: the MLP
-        reads the state's features from this one on (the baseline reads them all): with the readings' first, a
-        choice that does not read PCRN's state, which holds where the training objects lay."""
+    def __init__(self, in_dim: int, candidates: Tensor, hidden: int = 128, reads_from: int = 0) -> None:
+        """reads_from: the choice reads the state's features from this one on (the baseline reads them all): with
+        the readings last, a choice that does not read PCRN's state, which holds where the training objects lay."""
         super().__init__(in_dim)
         if candidates.ndim != 2 or candidates.shape[1] != 4 or len(candidates) < 2:
             raise ValueError(f"CandidateLocationNetwork: candidates of shape {tuple(candidates.shape)}, expected (C, 4) "
                              "with C >= 2")
         self.register_buffer("candidates", candidates.float())
-        if not 0 <= reads_from < in_dim or (reads_from and along_line is not None):
-            raise ValueError(f"CandidateLocationNetwork: reads_from={reads_from} must lie in [0, {in_dim}) and be 0 "
-                             "with along_line (the convolution reads the whole state)")
+        if not 0 <= reads_from < in_dim:
+            raise ValueError(f"CandidateLocationNetwork: reads_from={reads_from} must lie in [0, {in_dim})")
         self.reads_from = reads_from
-        if along_line is None:
-            self.net = mlp([in_dim - reads_from, hidden, hidden, len(candidates)], last_act=False)
-        else:
-            readings, places = along_line
-            if len(candidates) % places:
-                raise ValueError(f"CandidateLocationNetwork: {len(candidates)} candidates are not {places} places x "
-                                 "directions")
-            self.net = AlongLineChoice(in_dim, readings, places, len(candidates) // places, hidden=hidden // 2)
+        self.net = mlp([in_dim - reads_from, hidden, hidden, len(candidates)], last_act=False)
 
     def log_probs(self, state: Tensor, exclude: Tensor | None = None) -> Tensor:
         """(..., D) -> (..., C) log-probabilities of the candidates; exclude (..., C) bool: candidates never chosen
@@ -222,13 +159,11 @@ class CandidateLocationNetwork(PolicyState):
         return torch.log_softmax(logits if exclude is None else logits.masked_fill(exclude, -torch.inf), -1)
 
     def readings(self, actions: Tensor, points: Tensor, n_probes: int) -> tuple[Tensor, Tensor]:
-        """What the probes so far read, by candidate (beyond the paper: scripts/copy_planner.py's state, from which
-        it copies the greedy planner, with the touch's depth in place of its distance along the ray). actions
+        """What the probes so far read, by candidate (beyond the paper: what the greedy planner weighs its candidates
+        by, with the touch's depth in place of its distance along the ray). actions
         (B, K, 4) candidates and the points (B, K, 4) they returned (X, Y, Z, T) -> row j, after probes 1..j + 1:
-        features (B, K, 3C + n_probes), for every candidate how often it was probed, how often it touched and how
-        deep on average (-Z), then the next probe's index one-hot (a candidate probed once: 0/1 flags and its
-        depth; counts where a choice may probe again, model.choice_repeats); and the probed candidates (B, K, C)
-        bool."""
+        features (B, K, 3C + n_probes), for every candidate whether it was probed, whether it touched and how
+        deep (-Z), then the next probe's index one-hot; and the probed candidates (B, K, C) bool."""
         chosen = F.one_hot(self.index_of(actions), len(self.candidates)).float()  # (B, K, C)
         touched = chosen * (points[..., 3:] > 0.5).float()
         probes, touches = chosen.cumsum(1), touched.cumsum(1)
@@ -254,11 +189,9 @@ class CandidateLocationNetwork(PolicyState):
         return index
 
     def sample(self, state: Tensor, deterministic: bool | Tensor = False, generator: torch.Generator | None = None,
-               offset: Tensor | None = None, exclude: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+               exclude: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
         """A candidate per row, drawn (or the most likely: deterministic, everywhere or in its True rows; the
         others draw the same numbers as without it), with the moments of the choice; never an excluded one."""
-        if offset is not None:
-            raise ValueError("CandidateLocationNetwork takes no prior offset (model.prior: none)")
         log_probs = self.log_probs(state, exclude).detach()
         index = log_probs.argmax(-1)
         if isinstance(deterministic, Tensor) or not deterministic:
@@ -267,16 +200,10 @@ class CandidateLocationNetwork(PolicyState):
             index = drawn if not isinstance(deterministic, Tensor) else torch.where(deterministic, index, drawn)
         return (self.candidates[index], *self.moments(log_probs))
 
-    def log_prob(self, state: Tensor, action: Tensor, offset: Tensor | None = None, exclude: Tensor | None = None
-                 ) -> Tensor:
-        """log pi(a_k | s_k) of candidate requests, (..., D), (..., 4) -> (...)."""
-        return self.log_prob_and_moments(state, action, offset, exclude)[0]
-
-    def log_prob_and_moments(self, state: Tensor, action: Tensor, offset: Tensor | None = None,
-                             exclude: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
-        """log_prob with the moments of the choice it was taken under."""
-        if offset is not None:
-            raise ValueError("CandidateLocationNetwork takes no prior offset (model.prior: none)")
+    def log_prob_and_moments(self, state: Tensor, action: Tensor, exclude: Tensor | None = None
+                             ) -> tuple[Tensor, Tensor, Tensor]:
+        """log pi(a_k | s_k) of candidate requests, (..., D), (..., 4) -> (...), with the moments of the choice it
+        was taken under."""
         log_probs = self.log_probs(state, exclude)
         log_pi = log_probs.gather(-1, self.index_of(action)[..., None])[..., 0]
         return (log_pi, *self.moments(log_probs))

@@ -4,6 +4,7 @@ the touch-set classifier that reads the touched points of a rollout."""
 import torch
 from torch import Tensor, nn
 
+from hg.nets.dims import Dims
 from hg.nets.mirror import left_of_line, reflect
 from hg.nets.mlp import mlp
 
@@ -80,63 +81,39 @@ class DGCNN(nn.Module):
 
 
 class TouchSetClassifier(nn.Module):
-    """Beyond the paper: a PointNet over the points touched so far, taken relative to their mean. Where the
-    object lies is no class cue, its shape is; PCRN reads points in the episode frame and learns this
-    invariance slowly. logits[:, k] reads probes 1..k+1 only (causal), like every classifier of the rollout.
+    """Beyond the paper: a PointNet over every probe so far, its points taken relative to the mean of the touched
+    ones. Where the object lies is no class cue, its shape is; PCRN reads points in the episode frame and learns
+    this invariance slowly. logits[:, k] reads probes 1..k+1 only (causal), like every classifier of the rollout.
 
-    Shared MLP on each touched point -> max pool over the touched points of the prefix -> (pooled, share of
-    probes that touched) -> MLP -> logits. A prefix without a touch pools to zeros.
-
-    With `misses`, every probe of the prefix is pooled, as (X, Y, Z relative to the touched points' mean, T): a
-    miss reports where its ray ended, so it says where the object is not, which tells where it ends. The wide
-    variant (`wide()`) pools misses too, 512 features wide, with LayerNorm: on the same fixed-scan probes it
-    learns more (`scan_coverage.py --fit-net`).
-
-    With `miss_frame="line"` a miss keeps its X and Z as its ray left them (only its Y is taken relative to the
-    touches): relative to the touches they would say where the object lies across the line and how deep, which the
-    held-out position cells do not share with the training ones; as they are, they say only which way the ray went.
+    Shared MLP on each probe (X, Y, Z relative to the touches' mean, T) -> max pool over the prefix -> (pooled,
+    share of probes that touched) -> MLP -> logits; LayerNorm before every activation. A miss reports where its
+    ray ended, so it says where the object is not, which tells where it ends.
 
     With `mirror`, each prefix's probes are mirrored across the probe line's vertical plane (X = `line_x`, point
     coordinates; the model sets it from its scene) when their touches' mean lies on its -x side: an object and its
-    mirror image across the line then read alike, so one lying off the line to -x is read as those seen to +x. For
-    object sets with mirror-symmetric shapes, as hg4's, this loses nothing.
+    mirror image across the line then read alike. Only for object sets whose shapes are mirror-symmetric.
 
-    With `n_prefixes` > 0 the head also reads which prefix it scores (one-hot, k < n_prefixes): one set of weights
-    then need not read a scan's sparse first probes and its full set of probes alike.
-
-    `pooled()` gives what the head reads, so that a policy can read it too (model.policy_reads_touch_set).
+    With `last_only`, the head scores the whole episode only (one row): the model lets it replace the prediction
+    after the last probe, where one head scoring every prefix reads a reordered scan's full set worse.
     """
 
-    def __init__(self, n_classes: int, shared: tuple[int, ...] = (64, 128, 256), hidden: int = 256,
-                 scale: float = 5.0, misses: bool = False, layer_norm: bool = False, n_prefixes: int = 0,
-                 miss_frame: str = "touches", mirror: bool = False) -> None:
+    def __init__(self, dims: Dims, mirror: bool = False, last_only: bool = False, shared: tuple[int, ...] = (64, 128, 512),
+                 hidden: int = 256, scale: float = 5.0) -> None:
         super().__init__()
-        self.mirror, self.line_x = mirror, 0.0
-        if miss_frame not in ("touches", "line"):
-            raise ValueError(f"miss_frame={miss_frame!r}: expected 'touches' or 'line'")
-        if miss_frame == "line" and not misses:
-            raise ValueError("miss_frame='line' places the misses, so it needs misses=True")
-        self.miss_frame = miss_frame
+        self.mirror, self.last_only, self.line_x = mirror, last_only, 0.0
         self.scale = scale  # relative coordinates of a ~0.2 m object (x point_scale) to about unit size
-        self.misses = misses
-        self.n_prefixes = n_prefixes
-        self.shared = mlp([4 if misses else 3, *shared], layer_norm=layer_norm)
+        self.shared = mlp([4, *shared], layer_norm=True)
         self.pooled_dim = shared[-1] + 1  # the pooled features and the share of probes that touched
-        self.head = mlp([self.pooled_dim + n_prefixes, hidden, n_classes], last_act=False, layer_norm=layer_norm)
+        self.head = mlp([self.pooled_dim, hidden, dims.n_classes], last_act=False, layer_norm=True)
 
-    @classmethod
-    def wide(cls, n_classes: int, n_prefixes: int = 0, miss_frame: str = "touches",
-             mirror: bool = False) -> "TouchSetClassifier":
-        return cls(n_classes, shared=(64, 128, 512), misses=True, layer_norm=True, n_prefixes=n_prefixes,
-                   miss_frame=miss_frame, mirror=mirror)
-
-    def forward(self, points: Tensor) -> Tensor:
-        """points (B, N, 4): X, Y, Z and the contact flag T -> logits (B, N, n_classes)."""
-        return self.read(self.pooled(points))
+    def forward(self, rep: Tensor | None, points: Tensor) -> Tensor:
+        """points (B, N, 4): X, Y, Z and the contact flag T -> logits (B, N, n_classes), or (B, 1, n_classes) with
+        last_only. rep is not read: the touch set reads the points alone."""
+        return self.head(self.pooled(points, last_only=self.last_only))
 
     def pooled(self, points: Tensor, last_only: bool = False) -> Tensor:
         """points (B, N, 4) -> (B, N, pooled_dim): row k pools probes 1..k+1 and ends with their share of touches.
-        last_only: only the last row, (B, 1, pooled_dim), from N pairs; what a probe loop reads at each probe.
+        last_only: only the last row, (B, 1, pooled_dim), from N pairs.
 
         The shared MLP runs once per (prefix k, probe j <= k) pair, N (N + 1) / 2 of them, not N x N: a point's
         features depend on the prefix (its centre), and the pairs with j > k would only be masked out. This MLP is
@@ -157,29 +134,10 @@ class TouchSetClassifier(nn.Module):
             flip = left_of_line(points, self.line_x)[:, k]
             at, centre_k = (reflect(v, 0, self.line_x, flip) for v in (at, centre_k))
         relative = (at - centre_k) * self.scale  # (B, P, 3)
-        if self.miss_frame == "line":  # a miss's X and Z as its ray left them
-            across = torch.tensor([True, False, True], device=points.device)
-            relative = torch.where(across & (touched[:, j, None] < 0.5), at * self.scale, relative)
-        if self.misses:  # every probe of the prefix is pooled
-            features = self.shared(torch.cat([relative, touched[:, j, None]], -1))  # (B, P, F)
-        else:  # only the touched ones
-            features = self.shared(relative).masked_fill(touched[:, j, None] < 0.5, float("-inf"))
+        features = self.shared(torch.cat([relative, touched[:, j, None]], -1))  # (B, P, F)
         width = features.shape[-1]
         features = features.new_full((b, n, width), float("-inf")).scatter_reduce(
             1, k[None, :, None].expand(b, -1, width), features, "amax")  # max over each prefix's pairs: (B, K, F)
-        if not self.misses:  # a prefix without a touch pools to zeros
-            features = torch.where(count == 0, torch.zeros_like(features), features)
         share = count / torch.arange(1, n + 1, dtype=points.dtype, device=points.device)[:, None]
         pooled = torch.cat([features, share], -1)
         return pooled[:, -1:] if last_only else pooled
-
-    def read(self, pooled: Tensor) -> Tensor:
-        """pooled (B, N, pooled_dim) -> logits (B, N, n_classes)."""
-        b, n = pooled.shape[:2]
-        inputs = [pooled]
-        if self.n_prefixes:
-            if n > self.n_prefixes:
-                raise ValueError(f"{n} probes per episode, but this touch-set classifier reads at most "
-                                 f"n_prefixes={self.n_prefixes}")
-            inputs.append(torch.eye(n, self.n_prefixes, dtype=pooled.dtype, device=pooled.device).expand(b, -1, -1))
-        return self.head(torch.cat(inputs, -1))

@@ -1,0 +1,68 @@
+"""The model's library classifier: built from a teacher file's recipe, it names a rollout's probes (hg.planner)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor, nn
+
+from hg.rl import Rollout
+from hg.sim import ProbeSimulator, Scene
+
+
+@dataclass
+class LibrarySource:
+    """Where the library classifier comes from: the library recipe of a teacher file (its planner's), with
+    `episodes` training episodes in place of the file's library size if given. Held-out poses never enter it."""
+
+    teacher: str
+    episodes: int | None = None
+
+    def build(self, data, grid: dict | None) -> "LibraryNamer":
+        from hg.planner import CandidateGrid, LibraryClassifier, LibraryRecipe, teacher_meta
+
+        if not Path(self.teacher).is_file():
+            raise FileNotFoundError(f"model.library_classifier.teacher: {self.teacher}: teacher file not found "
+                                    "(write one with scripts/plan.py --save-rollouts)")
+        if self.episodes is not None and self.episodes < 1:
+            raise ValueError(f"model.library_classifier.episodes={self.episodes}: must be >= 1")
+        meta = teacher_meta([self.teacher])
+        file_grid = CandidateGrid.from_meta(meta)
+        for field, have, want in (("library_split", meta.get("library_split"), "train"),
+                                  ("objects", meta.get("objects"), data.object_set.name),
+                                  ("eval_seed", meta.get("eval_seed"), data.regions.seed),
+                                  *(((k, meta.get(k), v) for k, v in grid.items()) if grid else ()),
+                                  ("along_leans", meta.get("along_leans", []), [])):
+            if have != want:
+                raise ValueError(f"model.library_classifier: {self.teacher}: meta {field}={have!r}, this model needs "
+                                 f"{want!r} (held-out poses must not enter the library; its candidates must be the "
+                                 "policy's)")
+        with ProbeSimulator(data.object_set, 1024, data.scene, "ideal", seed=0) as sim:
+            classifier = LibraryClassifier.build(sim, data.regions, file_grid,
+                                                 LibraryRecipe.from_meta(meta, self.episodes), data.noise)
+        return LibraryNamer(classifier, torch.from_numpy(file_grid.requests()).float())
+
+
+class LibraryNamer(nn.Module):
+    """A library classifier naming rollouts: which candidate each probe was and what it read (how far from its
+    entry point it touched, MISS where nothing was touched), as the planner read its candidates."""
+
+    def __init__(self, classifier: nn.Module, candidates: Tensor) -> None:
+        super().__init__()
+        self.classifier = classifier
+        self.register_buffer("candidates", candidates, persistent=False)
+
+    def name(self, rollout: Rollout, scene: Scene, point_scale: float) -> Tensor:
+        """(B, N, classes) the library classifier's log posterior after each probe."""
+        from hg.planner import MISS
+
+        requests = rollout.requests
+        distance = (requests.detach()[..., None, :] - self.candidates).abs().amax(-1)
+        nearest, chosen = distance.min(-1)
+        if (nearest > 1e-4).any():
+            raise ValueError("library classifier: a probe that is none of the planner's candidates cannot be named")
+        entries = torch.from_numpy(scene.request_to_probe(self.candidates.cpu().numpy())[0]).to(rollout.points)
+        distance = (rollout.points[..., :3] / point_scale - entries[chosen]).norm(dim=-1)
+        readings = torch.where(rollout.points[..., 3] > 0.5, distance, MISS)
+        return self.classifier(chosen, readings)

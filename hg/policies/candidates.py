@@ -1,0 +1,51 @@
+"""Beyond the paper: a categorical choice among fixed candidate requests, the greedy planner's grid (places along
+the middle of the line x straight or leaning to +-x). A Gaussian copying a teacher that leans to either side ends
+up between them; a choice cannot average two sides."""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from hg.nets import CandidateLocationNetwork
+from hg.nets.dims import Dims
+from hg.policies.base import LearnedPolicy, Observation, PolicyEval
+from hg.sim import candidate_requests
+
+
+class CandidateChoice(LearnedPolicy):
+    """pi(a_k | s_k) over `places` x (straight, +-x by each of `leans`) candidates, reading what each candidate read
+    so far (CandidateLocationNetwork.readings) and never probing one twice. With `reads_encoder` the choice also
+    reads PCRN's state; without it, the readings only (the baseline always reads both): PCRN's state holds where
+    the training objects lay, which held-out positions do not share."""
+
+    def __init__(self, dims: Dims, places: int = 11, span: float = 0.5, leans: tuple[float, ...] = (0.6, 1.0, 2.0),
+                 hidden: int = 128, reads_encoder: bool = False, reads_detached: bool = False) -> None:
+        try:
+            candidates = torch.from_numpy(candidate_requests(places, span, list(leans)))
+        except ValueError as error:
+            raise ValueError(f"CandidateChoice: places / span / leans: {error}") from None
+        state_dim = dims.rep + 3 * len(candidates) + dims.n_probes
+        super().__init__(state_dim, reads_detached)
+        self.n_probes, self.grid = dims.n_probes, {"places": places, "span": span, "leans": list(leans)}
+        self.location = CandidateLocationNetwork(state_dim, candidates, hidden=hidden,
+                                                 reads_from=0 if reads_encoder else dims.rep)
+
+    @property
+    def candidates(self) -> Tensor:
+        return self.location.candidates
+
+    def act(self, obs: Observation, deterministic: bool | Tensor, generator: torch.Generator) -> Tensor:
+        k, extra, exclude = obs.k, None, None
+        if k > 0:  # what probes 1..k read
+            extra, exclude = self.location.readings(obs.actions[:, :k], obs.points[:, :k], self.n_probes)
+            extra, exclude = extra[:, -1], exclude[:, -1]
+        state = self.location.state(obs.rep_sum, k, batch_size=len(obs.points), extra=extra)
+        return self.location.sample(state, deterministic=deterministic, generator=generator, exclude=exclude)[0]
+
+    def evaluate(self, rep: Tensor, actions: Tensor, points: Tensor) -> PolicyEval:
+        readings, probed = self.location.readings(actions, points, self.n_probes)
+        states = self.location.states(self.policy_rep(rep), readings)
+        exclude = F.pad(probed[:, :-1], (0, 0, 1, 0), value=False)  # state s_k excludes what probes 1..k probed
+        log_pi, mu, sigma = self.location.log_prob_and_moments(states, actions, exclude)
+        return PolicyEval(log_pi, self.baseline(states.detach()), mu, sigma, stats=self.std_stats(sigma))

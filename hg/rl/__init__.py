@@ -1,0 +1,7 @@
+"""Reinforcement learning without Lightning: the rollout (the only caller of the simulator during training and
+evaluation) and the hybrid update rule, eq. (6)."""
+from hg.rl.loss import HybridLoss, discounted_returns
+from hg.rl.rollout import Rollout, rollout
+from hg.rl.warmup import FollowPrior, ImitateTeacher
+
+__all__ = ["FollowPrior", "HybridLoss", "ImitateTeacher", "Rollout", "discounted_returns", "rollout"]

@@ -1,0 +1,78 @@
+"""The hybrid update rule, eq. (6) of the paper, as a loss to minimise. Every term is returned for logging."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+Reward = Literal["correct", "log_gain"]
+
+
+def discounted_returns(rewards: Tensor, gamma: float) -> Tensor:
+    """G_k = sum_{j >= k} gamma^(j - k) r_j over the probe axis (B, N): the return of request k (eq. 3). The paper
+    writes G(k) = sum_{k' = k + 1}^{N - 1} gamma^(k' - k + 1) r_k'; we count the reward of the probe the request
+    made (docs/findings.md, "Why the paper's rule collapses here")."""
+    returns = torch.zeros_like(rewards)
+    running = torch.zeros_like(rewards[:, 0])
+    for k in range(rewards.shape[1] - 1, -1, -1):
+        running = rewards[:, k] + gamma * running
+        returns[:, k] = running
+    return returns
+
+
+def rewards_of(logits: Tensor, labels: Tensor, reward: Reward) -> Tensor:
+    """r_k (B, N) of the prediction after each probe: 1 when it is right (the paper), or beyond the paper
+    "log_gain", what probe k added to log p(true class) (they sum to log p_N - log(1/C))."""
+    if reward == "correct":
+        return (logits.argmax(-1) == labels[:, None]).float()
+    if reward != "log_gain":
+        raise ValueError(f"reward={reward!r}: expected 'correct' or 'log_gain'")
+    n_probes = logits.shape[1]
+    log_p = logits.detach().log_softmax(-1).gather(-1, labels[:, None, None].expand(-1, n_probes, 1)).squeeze(-1)
+    return torch.diff(log_p, dim=1, prepend=torch.full_like(log_p[:, :1], -math.log(logits.shape[-1])))
+
+
+@dataclass(frozen=True)
+class HybridLoss:
+    """Eq. (6) and its settings: the discount gamma, the policy term's weight beta, the reward and, beyond the
+    paper, advantages normalised per probe index."""
+
+    gamma: float = 0.95
+    beta: float = 1.0
+    reward: Reward = "correct"
+    normalize_advantage: bool = False
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.gamma <= 1.0:
+            raise ValueError(f"loss.gamma={self.gamma}: the discount must be in [0, 1]")
+        if self.reward not in ("correct", "log_gain"):
+            raise ValueError(f"loss.reward={self.reward!r}: expected 'correct' or 'log_gain'")
+
+    def __call__(self, logits: Tensor, labels: Tensor, log_pi: Tensor | None = None, baseline: Tensor | None = None,
+                 policy_scale: float = 1.0) -> dict[str, Tensor]:
+        """logits (B, N, C), the prediction after each probe; log_pi (B, N) log pi(a_k | s_k) of the detached
+        requests; baseline (B, N) b_k from detached states. Without a policy to train (a fixed scan, or a teacher's
+        probes) only the cross-entropy remains. policy_scale multiplies beta: the gradient of log N grows as 1 / std,
+        so a shrinking std must not let the policy term crowd the others out of the clipped gradient."""
+        n_probes = logits.shape[1]
+        correct = (logits.argmax(-1) == labels[:, None]).float()
+        rewards = rewards_of(logits, labels, self.reward)  # r_k, no gradient
+        # sum_o y_o log pi_c(o), on the prediction after every probe
+        cross_entropy = F.cross_entropy(logits.flatten(0, 1), labels.repeat_interleave(n_probes))
+        terms = {"loss_ce": cross_entropy, "reward": rewards.mean(), "acc": correct[:, -1].mean()}
+        if log_pi is None:
+            terms["loss"] = cross_entropy
+            return terms
+        returns = discounted_returns(rewards, self.gamma)  # G_k, eq. (3)
+        advantage = (returns - baseline).detach()  # (G_k - b_k): the baseline reduces variance, not the gradient path
+        if self.normalize_advantage:  # beyond the paper: unit-scale advantages per probe index
+            advantage = advantage / (advantage.std(0, keepdim=True) + 1e-6)
+        policy = -(log_pi * advantage).mean()  # autograd of log N(x; mu, sigma) gives xi_mu, xi_sigma of eq. (4), (5)
+        baseline_mse = F.mse_loss(baseline, returns)  # b_k is fitted to the return
+        terms.update(loss_policy=policy, loss_baseline=baseline_mse,
+                     loss=cross_entropy + self.beta * policy_scale * policy + baseline_mse)
+        return terms

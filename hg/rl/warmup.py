@@ -1,0 +1,47 @@
+"""What the first training steps probe with, before the policy learns by REINFORCE (beyond the paper): its prior
+scan, or a teacher's recorded episodes to copy. The classifiers learn on steady probes meanwhile."""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+class FollowPrior:
+    """For the first `steps` training steps the policy does not probe: its prior scan does, untrained, so that the
+    policy then starts exactly where the classifiers learned. `imitate`: the policy learns to copy the warm-up's
+    requests (an imitation term beside the cross-entropy)."""
+
+    imitate = False
+
+    def __init__(self, steps: int) -> None:
+        if steps < 1:
+            raise ValueError(f"warmup.steps={steps}: must be >= 1")
+        self.steps = steps
+
+    def episodes(self, labels: Tensor, poses: Tensor, step: int) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
+        """(labels, poses, requests (B, N, 4) or None, faults (B, N, 2) or None) of training step `step`: None
+        requests leave the probing to the policy's prior scan."""
+        return labels, poses, None, None
+
+
+class ImitateTeacher(FollowPrior):
+    """The teacher's episodes in turn, with the requests it chose (and the sensor faults it read), which the policy
+    learns to copy: the greedy planner's, written by scripts/plan.py --save-rollouts."""
+
+    imitate = True
+
+    def __init__(self, steps: int, teachers: list[str]) -> None:
+        super().__init__(steps)
+        if not teachers:
+            raise ValueError("warmup.teachers: give at least one teacher file (scripts/plan.py --save-rollouts)")
+        self.teachers = list(teachers)
+        self.teacher: dict[str, Tensor] | None = None  # loaded by the model's setup, which knows the world
+
+    def episodes(self, labels: Tensor, poses: Tensor, step: int) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
+        if self.teacher is None:
+            raise RuntimeError("ImitateTeacher: the teacher files were not loaded (HapticGlance.setup)")
+        n = len(self.teacher["labels"])
+        rows = (step * len(labels) + torch.arange(len(labels))) % n
+        faults = None if self.teacher["faults"] is None else self.teacher["faults"][rows]
+        return (self.teacher["labels"][rows].to(labels.device), self.teacher["poses"][rows].to(poses.device),
+                self.teacher["requests"][rows], faults)
