@@ -14,6 +14,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pytorch_lightning as pl  # noqa: E402
+import torch  # noqa: E402
 import yaml  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 from pytorch_lightning.callbacks import ModelCheckpoint  # noqa: E402
@@ -36,13 +37,14 @@ def run_dir(trainer: pl.Trainer) -> Path:
 
 
 def per_probe_table(metrics: dict, stage: str, n_probes: int) -> dict[str, list[float]]:
-    """Columns of accuracy after probe k = 1..N found in logged metrics: stochastic and mean-action rollouts, and
-    a library namer alone on the stochastic rollout's probes (model.library_namer)."""
+    """Columns of accuracy after probe k = 1..N found in logged metrics: the learned heads on stochastic and
+    mean-action rollouts and, with a library classifier (model.library_classifier), it alone and mixed with them."""
     columns = {}
-    for label, suffix in (("stochastic", ""), ("mean_action", "_mean_action"), ("namer_alone", "_namer")):
-        keys = [f"{stage}/acc{suffix}@{k}" for k in range(1, n_probes + 1)]
-        if all(k in metrics for k in keys):
-            columns[label] = [float(metrics[k]) for k in keys]
+    for who in ("", "_library", "_mixed"):
+        for rollout, suffix in (("stochastic", ""), ("mean_action", "_mean_action")):
+            keys = [f"{stage}/acc{who}{suffix}@{k}" for k in range(1, n_probes + 1)]
+            if all(k in metrics for k in keys):
+                columns[f"{rollout}{who}"] = [float(metrics[k]) for k in keys]
     return columns
 
 
@@ -178,6 +180,45 @@ class RunDirSaveConfig(SaveConfigCallback):
             write_atomic(run_dir(trainer) / self.config_filename, config)
             if trainer.logger is not None:
                 trainer.logger.log_hyperparams({"config": yaml.safe_load(config)})
+
+
+class GradientDiagnostics(pl.Callback):
+    """Why a policy gradient may wreck the classifier it shares an encoder with: every `every_n_steps` training steps,
+    the norms of the gradients the policy term (beta-weighted, as in the loss) and the cross-entropy send into the
+    encoder, and their ratio, logged (train/grad_*) and written with the step's other training terms (advantage,
+    stds, touch rate per probe, clamped share) to diagnostics.csv in the run directory. 0: off."""
+
+    def __init__(self, every_n_steps: int = 50) -> None:
+        if every_n_steps < 0:
+            raise ValueError(f"diagnostics.every_n_steps={every_n_steps}: must be >= 0")
+        self.every = every_n_steps
+        self.rows: list[dict[str, float]] = []
+
+    def on_before_backward(self, trainer: pl.Trainer, pl_module: pl.LightningModule, loss) -> None:
+        terms = getattr(pl_module, "last_terms", None)
+        if not self.every or trainer.global_step % self.every or terms is None:
+            return
+        params = [p for p in pl_module.encoder.parameters() if p.requires_grad]
+        row = {"step": float(trainer.global_step)}
+        parts = {"ce": terms["loss_ce"]}
+        if "loss_policy" in terms:
+            parts["policy"] = pl_module.loss.beta * float(pl_module.policy.std_scale) * terms["loss_policy"]
+        for name, term in parts.items():
+            grads = torch.autograd.grad(term, params, retain_graph=True, allow_unused=True)
+            row[f"grad_{name}"] = float(torch.sqrt(sum((g.pow(2).sum() for g in grads if g is not None),
+                                                       torch.zeros(()))))
+        if "grad_policy" in row:
+            row["grad_ratio"] = row["grad_policy"] / max(row["grad_ce"], 1e-12)
+        pl_module.log_dict({f"train/{k}": v for k, v in row.items() if k != "step"})
+        row |= {k: float(v) for k, v in terms.items()}
+        self.rows.append(row)
+        if trainer.is_global_zero:
+            keys = list(dict.fromkeys(k for r in self.rows for k in r))
+            text = io.StringIO()
+            writer = csv.DictWriter(text, keys)
+            writer.writeheader()
+            writer.writerows(self.rows)
+            write_atomic(run_dir(trainer) / "diagnostics.csv", text.getvalue())
 
 
 def schedule_end(trainer: pl.Trainer, name: str) -> int:

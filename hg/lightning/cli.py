@@ -15,7 +15,7 @@ import yaml
 from pytorch_lightning.callbacks import ModelCheckpoint
 from pytorch_lightning.cli import LightningArgumentParser, LightningCLI
 
-from hg.lightning.callbacks import CosineLR, LatestCheckpoint, PerProbeAccuracy, RunDirSaveConfig, StdDecay, TrainingClock
+from hg.lightning.callbacks import CosineLR, GradientDiagnostics, LatestCheckpoint, PerProbeAccuracy, RunDirSaveConfig, StdDecay, TrainingClock
 from hg.lightning.data import ProbeDataModule
 from hg.lightning.module import HapticGlance
 from hg.lightning.viz import ProbeMaps
@@ -49,6 +49,7 @@ class HapticCLI(LightningCLI):
         parser.add_lightning_class_args(TrainingClock, "training_clock")  # training time over resumed attempts
         parser.add_lightning_class_args(StdDecay, "std_decay")  # schedules: off (final_scale 1) unless a config sets them
         parser.add_lightning_class_args(CosineLR, "lr_decay")
+        parser.add_lightning_class_args(GradientDiagnostics, "diagnostics")
         parser.link_arguments("seed_everything", "data.seed")
         parser.link_arguments("data.n_probes", "model.n_probes")
         parser.link_arguments("data", "model.n_classes", compute_fn=lambda data: len(data.object_set),

@@ -13,7 +13,7 @@ from hg.nets import TouchSetClassifier
 from hg.nets.dims import Dims
 from hg.policies import LearnedPolicy, Policy
 from hg.rl import HybridLoss, Rollout, rollout
-from hg.rl.warmup import FollowPrior, ImitateTeacher
+from hg.rl.warmup import ImitateTeacher, Warmup
 from hg.sim import ProbeSimulator
 from hg.lightning.library import LibrarySource
 
@@ -27,12 +27,12 @@ class HapticGlance(pl.LightningModule):
     next (hg.policies). heads: classifiers whose logits are summed (a head with `last_only` replaces the prediction
     after the last probe). library_classifier: beyond the paper, a non-learned Bayes classifier over a library of
     simulated training episodes, scored alone and mixed with the heads at validation and test, never trained
-    (hg.planner). warmup: beyond the paper, what probes before the policy learns (its prior scan, or a teacher to
-    copy). loss: eq. (6)'s settings.
+    (hg.planner). warmup: beyond the paper, what probes before the policy learns (itself untrained, its prior scan,
+    or a teacher to copy). loss: eq. (6)'s settings.
     """
 
     def __init__(self, encoder: nn.Module, policy: Callable[[Dims], Policy], heads: list[Callable[[Dims], nn.Module]],
-                 loss: HybridLoss = HybridLoss(), warmup: FollowPrior | None = None,
+                 loss: HybridLoss = HybridLoss(), warmup: Warmup | None = None,
                  library_classifier: LibrarySource | None = None, lr: float = 1e-3, policy_lr_scale: float = 1.0,
                  point_scale: float = 2.0, n_probes: int = 10, n_classes: int = 4) -> None:
         super().__init__()
@@ -50,9 +50,8 @@ class HapticGlance(pl.LightningModule):
         self.loss, self.warmup, self.library_source = loss, warmup, library_classifier
         if warmup is not None and not self.policy.learned:
             raise ValueError(f"model.warmup: a fixed policy ({type(self.policy).__name__}) has nothing to warm up")
-        if warmup is not None and not isinstance(warmup, ImitateTeacher) and getattr(self.policy, "prior", None) is None:
-            raise ValueError("model.warmup: FollowPrior probes with the policy's prior scan; this policy has none "
-                             "(model.policy.init_args.prior)")
+        if warmup is not None:
+            warmup.prober(self.policy)  # refuses a warm-up that cannot probe with this policy
         self.library = None  # the library classifier, built in setup() from its source (it needs the simulator)
         self.sim: ProbeSimulator | None = None
 
@@ -129,7 +128,7 @@ class HapticGlance(pl.LightningModule):
         labels, poses, seed = batch["labels"], batch["poses"], int(batch["seed"])
         if self.global_step < self.policy_start:
             labels, poses, requests, faults = self.warmup.episodes(labels, poses, self.global_step)
-            probe_with = self.policy.prior if requests is None else None
+            probe_with = self.warmup.prober(self.policy) if requests is None else None
             rollout = self.roll(labels, poses, seed, policy=probe_with, requests=requests, faults=faults)
             regime: Regime = "imitate" if self.warmup.imitate else "classify"
         else:
@@ -140,8 +139,11 @@ class HapticGlance(pl.LightningModule):
             raise FloatingPointError(f"non-finite loss {terms['loss'].item()} at global step {self.global_step} "
                                      f"(terms: { {k: round(v.item(), 4) for k, v in terms.items()} })")
         size = len(labels)
+        touches = rollout.points[..., 3].mean(0)
+        terms |= {"touch_rate": touches.mean(), **{f"touch_rate@{k + 1}": t for k, t in enumerate(touches)},
+                  "clamp_share": (rollout.actions.abs() > 1).float().mean()}  # requests executed other than drawn
+        self.last_terms = terms  # for the gradient diagnostics (hg.lightning.callbacks.GradientDiagnostics)
         self.log_dict({f"train/{k}": v for k, v in terms.items()}, batch_size=size)
-        self.log("train/touch_rate", rollout.points[..., 3].mean(), batch_size=size)
         self.log("train/reach_rate", rollout.reached.float().mean(), batch_size=size)
         self.log("train/lr", self.optimizers().param_groups[0]["lr"], batch_size=size)
         return terms["loss"]

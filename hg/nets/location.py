@@ -65,9 +65,13 @@ class LocationNetwork(PolicyState):
 
     def __init__(
         self, in_dim: int, action_dim: int = 4, hidden: int = 128, std_floor: float = 0.05, std_max: float = 1.0,
-        zero_mean: bool = False,
+        zero_mean: bool = False, truncated: bool = False,
     ) -> None:
+        """truncated: each component is drawn from the Gaussian truncated to [-1, 1] (samples outside re-drawn, as
+        Fleer et al. do) and its log-probability is the truncated density's, instead of clamping the executed
+        request while the log-probability is of the unclamped sample."""
         super().__init__(in_dim)
+        self.truncated = truncated
         if not 0 < std_floor < std_max:
             raise ValueError(f"LocationNetwork needs 0 < std_floor < std_max, got {std_floor=}, {std_max=}")
         self.action_dim, self.std_floor, self.std_max = action_dim, std_floor, std_max
@@ -112,7 +116,14 @@ class LocationNetwork(PolicyState):
         action = torch.zeros_like(eps)
         for j in range(self.action_dim):
             mu, sigma = self.distribution(state, action, offset)
-            action[..., j] = (mu[..., j] + sigma[..., j] * eps[..., j]).detach()
+            value = mu[..., j] + sigma[..., j] * eps[..., j]
+            for _ in range(100 if self.truncated else 0):  # re-draw what fell outside [-1, 1]
+                outside = value.abs() > 1
+                if not outside.any():
+                    break
+                redraw = torch.randn(value.shape, generator=generator, device=state.device, dtype=state.dtype)
+                value = torch.where(outside, mu[..., j] + sigma[..., j] * redraw, value)
+            action[..., j] = value.clamp(-1, 1).detach() if self.truncated else value.detach()
         # The last pass already saw every component a mu_j / sigma_j may read, so (mu, sigma) belong to action.
         return action, mu, sigma
 
@@ -123,7 +134,11 @@ class LocationNetwork(PolicyState):
         weighted, eq. (3)."""
         action = action.detach()
         mu, sigma = self.distribution(state, action, offset)
-        return torch.distributions.Normal(mu, sigma).log_prob(action).sum(-1), mu, sigma
+        normal = torch.distributions.Normal(mu, sigma)
+        log_p = normal.log_prob(action)
+        if self.truncated:  # the density of the Gaussian truncated to [-1, 1]
+            log_p = log_p - torch.log((normal.cdf(torch.ones_like(mu)) - normal.cdf(-torch.ones_like(mu))).clamp_min(1e-12))
+        return log_p.sum(-1), mu, sigma
 
     def imitation_loss(self, log_pi: Tensor, mu: Tensor, action: Tensor) -> Tensor:
         """How far the policy is from a teacher's requests: the mean's squared distance from them, whose gradient

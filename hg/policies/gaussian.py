@@ -19,18 +19,19 @@ class GaussianPolicy(LearnedPolicy):
     Beyond the paper, with a `prior` scan the mean starts exactly on the scan's requests (the mean head starts at
     zero and the scan's request is added before the tanh), so a classifier trained behind the scan keeps its probes
     when the policy takes over; `anchor` then charges for the mean's squared distance from the scan, so the policy
-    moves only where the reward pays for it."""
+    moves only where the reward pays for it. `truncated`: samples re-drawn inside [-1, 1] with the truncated
+    Gaussian's log-probability (LocationNetwork) instead of clamped."""
 
     def __init__(self, dims: Dims, hidden: int = 128, std_floor: float = 0.05, std_max: float = 1.0,
                  prior: Callable[[Dims], Scan] | None = None, anchor: float = 0.0,
-                 reads_detached: bool = False) -> None:
+                 reads_detached: bool = False, truncated: bool = False) -> None:
         super().__init__(dims.rep, reads_detached)
         self.prior = prior(dims) if prior is not None else None
         if anchor < 0.0 or (anchor and self.prior is None):
             raise ValueError(f"GaussianPolicy: anchor={anchor}: must be >= 0, and needs a prior scan to hold to")
         self.anchor = anchor
         self.location = LocationNetwork(dims.rep, hidden=hidden, std_floor=std_floor, std_max=std_max,
-                                        zero_mean=self.prior is not None)
+                                        zero_mean=self.prior is not None, truncated=truncated)
 
     def offsets(self, points: Tensor) -> Tensor | None:
         """(B, N, 4) the prior scan's requests before the tanh (only requests beyond +-0.9, the ends of a full-span

@@ -39,18 +39,22 @@ def rewards_of(logits: Tensor, labels: Tensor, reward: Reward) -> Tensor:
 @dataclass(frozen=True)
 class HybridLoss:
     """Eq. (6) and its settings: the discount gamma, the policy term's weight beta, the reward and, beyond the
-    paper, advantages normalised per probe index."""
+    paper, advantages normalised per probe index. `advantage`: "return", (G_k - b_k) with b_k fitted to G_k (ours,
+    REINFORCE with a baseline), or "reward", (r_k - b_k) with b_k fitted to r_k, eq. (6) as the paper writes it."""
 
     gamma: float = 0.95
     beta: float = 1.0
     reward: Reward = "correct"
     normalize_advantage: bool = False
+    advantage: Literal["return", "reward"] = "return"
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.gamma <= 1.0:
             raise ValueError(f"loss.gamma={self.gamma}: the discount must be in [0, 1]")
         if self.reward not in ("correct", "log_gain"):
             raise ValueError(f"loss.reward={self.reward!r}: expected 'correct' or 'log_gain'")
+        if self.advantage not in ("return", "reward"):
+            raise ValueError(f"loss.advantage={self.advantage!r}: expected 'return' or 'reward'")
 
     def __call__(self, logits: Tensor, labels: Tensor, log_pi: Tensor | None = None, baseline: Tensor | None = None,
                  policy_scale: float = 1.0) -> dict[str, Tensor]:
@@ -67,8 +71,10 @@ class HybridLoss:
         if log_pi is None:
             terms["loss"] = cross_entropy
             return terms
-        returns = discounted_returns(rewards, self.gamma)  # G_k, eq. (3)
+        # G_k, eq. (3), or r_k as eq. (6) writes it: what b_k is fitted to and the advantage is measured from
+        returns = discounted_returns(rewards, self.gamma) if self.advantage == "return" else rewards
         advantage = (returns - baseline).detach()  # (G_k - b_k): the baseline reduces variance, not the gradient path
+        terms.update(advantage_mean=advantage.mean(), advantage_std=advantage.std())
         if self.normalize_advantage:  # beyond the paper: unit-scale advantages per probe index
             advantage = advantage / (advantage.std(0, keepdim=True) + 1e-6)
         policy = -(log_pi * advantage).mean()  # autograd of log N(x; mu, sigma) gives xi_mu, xi_sigma of eq. (4), (5)

@@ -1,15 +1,16 @@
-"""What the first training steps probe with, before the policy learns by REINFORCE (beyond the paper): its prior
-scan, or a teacher's recorded episodes to copy. The classifiers learn on steady probes meanwhile."""
+"""What the first training steps probe with, before the policy learns by REINFORCE (beyond the paper): the policy
+itself untrained, its prior scan, or a teacher's recorded episodes to copy. The classifiers learn meanwhile."""
 from __future__ import annotations
 
 import torch
 from torch import Tensor
 
+from hg.policies import Policy
 
-class FollowPrior:
-    """For the first `steps` training steps the policy does not probe: its prior scan does, untrained, so that the
-    policy then starts exactly where the classifiers learned. `imitate`: the policy learns to copy the warm-up's
-    requests (an imitation term beside the cross-entropy)."""
+
+class Warmup:
+    """For the first `steps` training steps only the classifiers learn, on the probes of the untrained policy.
+    `imitate`: the policy learns to copy the warm-up's requests (an imitation term beside the cross-entropy)."""
 
     imitate = False
 
@@ -20,11 +21,26 @@ class FollowPrior:
 
     def episodes(self, labels: Tensor, poses: Tensor, step: int) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
         """(labels, poses, requests (B, N, 4) or None, faults (B, N, 2) or None) of training step `step`: None
-        requests leave the probing to the policy's prior scan."""
+        requests leave the probing to `prober`."""
         return labels, poses, None, None
 
+    def prober(self, policy: Policy) -> Policy:
+        """What probes when the warm-up gives no requests."""
+        return policy
 
-class ImitateTeacher(FollowPrior):
+
+class FollowPrior(Warmup):
+    """The policy's prior scan probes, untrained, so that the policy then starts exactly where the classifiers
+    learned."""
+
+    def prober(self, policy: Policy) -> Policy:
+        if getattr(policy, "prior", None) is None:
+            raise ValueError(f"model.warmup: FollowPrior probes with the policy's prior scan; {type(policy).__name__} "
+                             "has none (model.policy.init_args.prior)")
+        return policy.prior
+
+
+class ImitateTeacher(Warmup):
     """The teacher's episodes in turn, with the requests it chose (and the sensor faults it read), which the policy
     learns to copy: the greedy planner's, written by scripts/plan.py --save-rollouts."""
 
