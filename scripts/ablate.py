@@ -1,0 +1,100 @@
+"""Single-factor ablations on validation: a base composition, then one named CLI override at a time, over seeds.
+
+Each run trains the composition with the override for --steps steps, validates once at the end on the validation
+split (never test), and writes its record (command, commit, host, validation accuracy after each probe, the mean
+over the last half of training of the diagnostics: touch rate, clamped share, gradient ratio...) atomically to
+--out/<factor>_s<seed>.json; a finished record is reused. The last line printed is the summary table as JSON.
+
+    .venv/bin/python scripts/ablate.py --base configs/pcrn_fc.yaml --steps 2000 --seeds 0 1 \\
+        --factor none= --factor clip="--trainer.gradient_clip_val 1.0" --out docs/results/study
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import shlex
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+from hg.atomic import write_atomic
+from hg.provenance import commit, hardware, repo_path
+
+DIAGNOSTICS = ("touch_rate", "clamp_share", "grad_ratio", "grad_policy", "grad_ce", "std_py", "std_ux",
+               "advantage_mean", "advantage_std", "loss_baseline")
+
+
+def run(base: list[str], override: str, seed: int, steps: int, val_episodes: int, mode: str) -> dict:
+    """Train, validate at the last step, and summarise the diagnostics of the second half of training."""
+    import torch
+
+    from hg.lightning.cli import cli
+
+    start = time.time()
+    with tempfile.TemporaryDirectory() as folder:
+        args = [a for c in base for a in ("--config", c)] + shlex.split(override) + [
+            "--seed_everything", str(seed), "--data.mode", mode, "--trainer.max_steps", str(steps),
+            "--trainer.val_check_interval", str(steps), "--data.val_episodes", str(val_episodes),
+            "--trainer.logger", "false", "--trainer.default_root_dir", folder, "--checkpoint.dirpath", folder,
+            "--last_checkpoint.dirpath", folder, "--diagnostics.every_n_steps", str(max(1, steps // 40)),
+            "--trainer.enable_progress_bar", "false"]
+        torch.set_num_threads(1)
+        trained = cli(args, run=False)
+        trained.trainer.fit(trained.model, datamodule=trained.datamodule)
+        metrics = trained.trainer.callback_metrics
+        rows = list(csv.DictReader((Path(folder) / "diagnostics.csv").open()))
+    n = trained.model.hparams.n_probes
+    late = rows[len(rows) // 2:]
+    summary = {k: statistics.fmean(float(r[k]) for r in late if r.get(k)) for k in DIAGNOSTICS
+               if any(r.get(k) for r in late)}
+    return {"val_accuracy": [round(float(metrics[f"val/acc@{k}"]), 4) for k in range(1, n + 1)],
+            "val_accuracy_mean_action": [round(float(metrics[f"val/acc_mean_action@{k}"]), 4)
+                                         for k in range(1, n + 1) if f"val/acc_mean_action@{k}" in metrics],
+            "val_touch_rate": round(float(metrics["val/touch_rate"]), 4),
+            "train_late": {k: round(v, 4) for k, v in summary.items()}, "wall_s": round(time.time() - start, 1)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--base", nargs="+", required=True, help="the composition's config files, in order")
+    parser.add_argument("--factor", action="append", required=True, metavar="NAME=OVERRIDES",
+                        help="a named CLI override ('none=' for the base itself); repeat")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    parser.add_argument("--steps", type=int, default=2000)
+    parser.add_argument("--val-episodes", type=int, default=512)
+    parser.add_argument("--mode", default="ideal", choices=["ideal", "arm"])
+    parser.add_argument("--out", type=Path, required=True, help="folder of the run records")
+    args = parser.parse_args()
+    os.environ.setdefault("WANDB_MODE", "disabled")
+    factors = dict(f.split("=", 1) for f in args.factor)
+    table = {}
+    for name, override in factors.items():
+        for seed in args.seeds:
+            path = args.out / f"{name}_s{seed}.json"
+            if not path.is_file():
+                record = {"factor": name, "override": override, "seed": seed, "base": [repo_path(c) for c in args.base],
+                          "steps": args.steps, "mode": args.mode, "split": "val", "val_episodes": args.val_episodes,
+                          "commit": commit(), "hardware": hardware(),
+                          "command": f"scripts/ablate.py --base {' '.join(args.base)} --steps {args.steps} "
+                                     f"--seeds {seed} --mode {args.mode} --val-episodes {args.val_episodes} "
+                                     f"--factor {shlex.quote(f'{name}={override}')}",
+                          **run(args.base, override, seed, args.steps, args.val_episodes, args.mode)}
+                path.parent.mkdir(parents=True, exist_ok=True)
+                write_atomic(path, json.dumps(record, indent=1) + "\n")
+            record = json.loads(path.read_text())
+            table.setdefault(name, []).append(record)
+            print(f"{name} seed {seed}: val after 5 / 10 {record['val_accuracy'][4]:.3f} / "
+                  f"{record['val_accuracy'][-1]:.3f}, touch {record['val_touch_rate']:.3f}", flush=True)
+    print(json.dumps({name: {"seeds": [r["seed"] for r in rs],
+                             "val_after_5": round(statistics.fmean(r["val_accuracy"][4] for r in rs), 4),
+                             "val_after_10": round(statistics.fmean(r["val_accuracy"][-1] for r in rs), 4),
+                             **{k: round(statistics.fmean(r["train_late"].get(k, float("nan")) for r in rs), 4)
+                                for k in ("touch_rate", "clamp_share", "grad_ratio")}}
+                      for name, rs in table.items()}))
+
+
+if __name__ == "__main__":
+    main()
