@@ -12,7 +12,7 @@ after 10 probes under the simulator's missed / false-contact noise, at noise rat
   as PointNet and DGCNN are trained at the rate; its learned parts never saw noise.
 
 - The greedy planner under faults (`--models planner`, beyond the paper, no learning): Table 1's planner row
-  (scripts/planner_ceiling.py over its library of training episodes, on the same test episodes in arm mode) with
+  (scripts/plan.py over its library of training episodes, on the same test episodes in arm mode) with
   the sensor faulty at the rate; it weighs its library with the sensor's model, expects faulty readings when it
   picks a probe, and may probe a candidate again. At rate 0 it is the table's planner run. What probes placed
   under faults can say, for the policy copying the planner to aim at.
@@ -176,7 +176,7 @@ def test_under_noise(checkpoint: Path, rate: float, test_episodes: int = TEST_EP
 
 def plan_under_noise(seed: int, rate: float, test_episodes: int, out: Path, library: tuple[str, ...] | None = None
                      ) -> dict:
-    """Table 1's planner row on its test episodes with the sensor faulty at the rate (planner_ceiling.py --noise;
+    """Table 1's planner row on its test episodes with the sensor faulty at the rate (plan.py --noise;
     `library`: its library arguments, default the row's); at rate 0 the table's own planner run."""
     from reproduce_table1 import PLANNER_LIBRARY, plan_and_test
 
@@ -204,7 +204,7 @@ def noise_teachers(patterns: list[str] | None, config_teachers: list[str], rate:
     for teacher in teachers:
         if not (ROOT / teacher).is_file():
             raise FileNotFoundError(
-                f"{teacher}: no teacher planned at rate {rate}; write one with scripts/planner_ceiling.py, the "
+                f"{teacher}: no teacher planned at rate {rate}; write one with scripts/plan.py, the "
                 f"arguments of the noise-free teacher it stands for (its meta: library, shifts, mirror, episodes, seed) "
                 f"and --noise {rate} --save-rollouts {teacher}")
     return teachers

@@ -43,8 +43,8 @@ class Row:
     paper: str | None = None  # the paper's column this row reproduces
     learned: bool = True
     encoder: str = "pcrn"
-    planner: tuple[str, ...] = ()  # a row that plans instead of learning: scripts/planner_ceiling.py's library arguments
-    planned: str = "planner"  # which of planner_ceiling.py's results a planner row reports: its "planner", or probes
+    planner: tuple[str, ...] = ()  # a row that plans instead of learning: scripts/plan.py's library arguments
+    planned: str = "planner"  # which of plan.py's results a planner row reports: its "planner", or probes
     # placed by no one ("fixed": the straight scan, "random") named by the same weighing of its library
     namer_of: str | None = None  # the row whose library namer names this row's probes: the policy's margin over
     # them is read with that row's namer alone on both sides (the same classifier)
@@ -308,7 +308,7 @@ ROWS = {
 
 def config_of(row: str) -> str:
     """The config that trains `row` (the script that plans, for a planner row), relative to the repository root."""
-    return "scripts/planner_ceiling.py" if ROWS[row].planner else f"configs/{row}.yaml"
+    return "scripts/plan.py" if ROWS[row].planner else f"configs/{row}.yaml"
 
 
 # Table 1 of Riou et al. (ICASSP 2021): accuracy after k probes, 4 objects, held-out poses (no entry for k=1).
@@ -353,14 +353,14 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out_dir: Path, steps: in
 
 def plan_and_test(library: tuple[str, ...], seed: int, test_episodes: int, extra: tuple[str, ...] = (),
                   planned: str = "planner") -> dict:
-    """A planner row's run: scripts/planner_ceiling.py with its `library` (drawn with `seed`) on the test episodes
+    """A planner row's run: scripts/plan.py (hg.planner) with its `library` (drawn with `seed`) on the test episodes
     every row meets, in arm mode (`extra`: more of its arguments, e.g. --noise); the facts fit_and_test returns for
     its result `planned`, with the script's wall time (library and planning) as the training time. Nothing is
     learned, so there is no checkpoint and no validation score."""
     from hg.lightning.data import ProbeDataModule
     from hg.lightning.experiment import test_fingerprint
 
-    command = ["scripts/planner_ceiling.py", *library, "--split", "test", "--episodes", str(test_episodes),
+    command = ["scripts/plan.py", *library, "--split", "test", "--episodes", str(test_episodes),
                "--table-episodes", "--mode", "arm", "--seed", str(seed), *extra]
     start = time.time()
     proc = subprocess.run([sys.executable, *command], capture_output=True, text=True, cwd=ROOT)

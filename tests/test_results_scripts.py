@@ -86,9 +86,9 @@ def test_planner_row_plans_on_the_table_s_test_episodes_and_merges_beside_the_le
     table1.ROWS["tiny_planner"] = table1.Row("tiny planner", learned=False, planner=tiny)
     table1.train_and_test("tiny_planner", 0, tmp_path / "ckpt", tmp_path, None, 1, test_episodes=16)
     record = json.loads((tmp_path / "runs" / "tiny_planner-seed0.json").read_text())
-    assert record["command"].startswith("scripts/planner_ceiling.py --library-split train --library 128 --split test")
+    assert record["command"].startswith("scripts/plan.py --library-split train --library 128 --split test")
     assert len(record["accuracy"]) == 10 and all(0 <= a <= 1 for a in record["accuracy"])
-    assert record["accuracy_mean_action"] is None and record["config"] == "scripts/planner_ceiling.py"
+    assert record["accuracy_mean_action"] is None and record["config"] == "scripts/plan.py"
     fake_run(tmp_path, "pcrn_fc", 0, [0.5] * 10, fingerprint=record["test_fingerprint"])
     fake_run(tmp_path, "random", 0, [0.3] * 10, fingerprint=record["test_fingerprint"])
     record["test_episodes"] = 2048  # as fake_run's
@@ -96,7 +96,7 @@ def test_planner_row_plans_on_the_table_s_test_episodes_and_merges_beside_the_le
     table1.merge(tmp_path)
     text = (tmp_path / "table1.md").read_text()
     assert "| tiny planner | 1 |" in text and "Beats random probes + PCRN-FC by >= 0.15 after 10 probes: met (+0.200)" in text
-    assert "| tiny planner | `scripts/planner_ceiling.py --library-split train --library 128 --split test" in text
+    assert "| tiny planner | `scripts/plan.py --library-split train --library 128 --split test" in text
     assert "Beats tiny planner" not in text  # the 0.15 targets compare policies feeding one classifier
 
 
@@ -662,7 +662,7 @@ def test_ours_trained_copying_a_planner_copies_one_planned_at_the_rate(tmp_path)
     assert noise.noise_teachers(None, [str(tmp_path / "t.npz")], 0.1) == [str(tmp_path / "t_noise10.npz")]
     assert noise.noise_teachers([str(tmp_path / "t_noise{pct}.npz")], [], 0.1) == [str(tmp_path / "t_noise10.npz")]
     with pytest.raises(FileNotFoundError, match=r"t_noise30.npz: no teacher planned at rate 0.3; write one with "
-                                                r"scripts/planner_ceiling.py, the arguments of the noise-free "
+                                                r"scripts/plan.py, the arguments of the noise-free "
                                                 r"teacher.*--noise 0.3 --save-rollouts"):
         noise.noise_teachers(None, [str(tmp_path / "t.npz")], 0.3)
 
