@@ -41,7 +41,8 @@ sys.path.insert(0, str(ROOT))
 
 from hg.planner import CandidateGrid, LibraryRecipe, evaluate, save_teacher  # noqa: E402
 from hg.provenance import repo_path  # noqa: E402
-from hg.sim import DEFAULT_URDF, MODES, SPLITS, PoseRegions, Scene, SensorNoise, load_object_set, sample_episodes  # noqa: E402
+from hg.sim import (DEFAULT_URDF, MODES, SPLITS, PoseRegions, Scene, SensorNoise, load_object_set,  # noqa: E402
+                    sample_episodes)
 
 
 def scored_episodes(regions: PoseRegions, split: str, episodes: int, n_classes: int, seed: int,
@@ -70,7 +71,8 @@ def main() -> None:
                              "test) instead of episodes drawn with --seed")
     parser.add_argument("--mode", choices=MODES, default="ideal",
                         help="how the scored episodes are probed (the library always in ideal mode)")
-    parser.add_argument("--library", type=int, default=262144, help="library episodes, each probed with every candidate")
+    parser.add_argument("--library", type=int, default=262144,
+                        help="library episodes, each probed with every candidate")
     parser.add_argument("--library-split", choices=SPLITS, default="val")
     parser.add_argument("--shifts", type=int, default=0,
                         help="also the library's episodes moved along the line by up to this many place steps each way")
@@ -92,8 +94,8 @@ def main() -> None:
     parser.add_argument("--library-seed", type=int, default=None,
                         help="draw the library with this seed instead of --seed (a teacher file's seed: its library)")
     parser.add_argument("--noise", type=float, default=0.0,
-                        help="sensor fault rate of the scored episodes' probes: SensorNoise(miss_prob = false_contact_prob "
-                             "= rate); the planner weighs with the sensor's model and may re-probe")
+                        help="sensor fault rate of the scored episodes' probes: SensorNoise(miss_prob = "
+                             "false_contact_prob = rate); the planner weighs with the sensor's model and may re-probe")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--save-rollouts", type=Path, help="write the planner's episodes here (.npz): a teacher")
     args = parser.parse_args()
@@ -102,7 +104,8 @@ def main() -> None:
             parser.error(f"--{name.replace('_', '-')} {getattr(args, name)}: must be >= 1")
     if not 0 < args.span <= 1:
         parser.error(f"--span {args.span}: must be in (0, 1]")
-    if args.shifts < 0 or (args.shifts and (args.places < 2 or args.span * (1 + 2 * args.shifts / (args.places - 1)) > 1)):
+    if args.shifts < 0 or (args.shifts and (args.places < 2
+                                            or args.span * (1 + 2 * args.shifts / (args.places - 1)) > 1)):
         parser.error(f"--shifts {args.shifts}: must be >= 0, with --places >= 2, and keep the library's places on the "
                      "line (--span + shifts * place step <= 1)")
     for name in ("leans", "along_leans"):

@@ -30,6 +30,8 @@ def hand_made(noise: SensorNoise = SensorNoise(), **kwargs) -> LibraryClassifier
 def test_classifier_posterior_on_a_hand_made_library_is_the_closed_form():
     m, g = 1e-3, math.exp(-0.5)  # a touch against a miss keeps `mismatch`; 1 cm off with sigma 1 cm keeps e^-1/2
     classifier = hand_made(positions=torch.tensor([[0.1, 0.5], [0.2, -0.5], [0.3, 0.5], [-0.4, 0.0], [0.5, 1.0]]))
+    assert classifier.labels.tolist() == [0, 0, 0, 1, 1]  # by class; as given through `drawn`
+    assert classifier.labels[classifier.drawn].tolist() == [0, 1, 0, 1, 0]
     chosen, read = torch.tensor([[0, 1]]), torch.tensor([[0.10, MISS]])
     posterior = classifier(chosen, read).exp()[0]
     # probe 1 reads 0.10: class 0's episodes weigh 1, 1, m; class 1's e^-1/2, m

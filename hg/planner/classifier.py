@@ -71,6 +71,7 @@ class LibraryClassifier(nn.Module):
         order = torch.argsort(labels, stable=True)  # by class, so each class's weights are one slice
         self.register_buffer("library", library[order].T.contiguous().float(), persistent=False)  # (C, L)
         self.register_buffer("labels", labels[order].long(), persistent=False)  # (L,) in the library's order
+        self.register_buffer("drawn", torch.argsort(order), persistent=False)  # (L,) episode l as given: [:, drawn[l]]
         self.register_buffer("one_hot", torch.nn.functional.one_hot(labels[order], n_classes).float(),
                              persistent=False)
         self.register_buffer("positions", None if positions is None else positions[order].float(), persistent=False)

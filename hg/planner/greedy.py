@@ -77,15 +77,19 @@ class GreedyPlanner:
             raise ValueError(f"GreedyPlanner: bin={bin} must be > 0")
         self.classifier, self.noise = classifier, classifier.noise
         self.n_bins, self.n_classes = int(np.ceil(classifier.probe_length / bin)) + 2, classifier.n_classes
-        library = classifier.library.T.cpu().numpy()  # (L, C) in the classifier's order
-        self.cells = cell_matrix(reading_bins(library, bin, self.n_bins), classifier.labels.cpu().numpy(),
-                                 self.n_bins, self.n_classes)
+        # the library's episodes as they were drawn (the classifier holds them by class): weighed in that order the
+        # entropy rounds as it always has, so the planner's choices, teacher files and table rows are reproduced to
+        # the bit (a rounding tie between two mirror-image candidates would otherwise go either way)
+        self.drawn = classifier.drawn.cpu()
+        library = classifier.library.T[classifier.drawn].cpu().numpy()  # (L, C)
+        self.cells = cell_matrix(reading_bins(library, bin, self.n_bins),
+                                 classifier.labels[classifier.drawn].cpu().numpy(), self.n_bins, self.n_classes)
         self.repeats = bool(self.noise.miss_prob or self.noise.false_contact_prob)  # else a probe reads the same
 
     def entropy(self, log_w: torch.Tensor, used: torch.Tensor) -> torch.Tensor:
         """(Q, C) the class entropy each candidate would leave (inf where probed, unless it may probe again)."""
         weights = torch.exp(log_w - log_w.max(1, keepdim=True).values)  # relative to the most likely episode
-        score = expected_entropy(self.cells, weights.cpu(), self.n_bins, self.n_classes, self.noise)
+        score = expected_entropy(self.cells, weights.cpu()[:, self.drawn], self.n_bins, self.n_classes, self.noise)
         return score if self.repeats else score.masked_fill(used.cpu(), math.inf)
 
     def __call__(self, k: int, log_w: torch.Tensor, used: torch.Tensor) -> torch.Tensor:

@@ -120,8 +120,8 @@ def load_teacher(paths: list[str | Path], *, object_set_name: str, scene: Scene,
                                           "sensor": asdict(noise)}))  # as the meta holds them: tuples as lists
         for field, want in expected.items():
             if (meta["schema"] >= 1 or field in meta) and meta.get(field) != want:  # schema 0: what it carries
-                raise ValueError(f"{path}: teacher meta {field}={meta.get(field)!r}, this run has {want!r}"
-                                 + (f" (write a teacher with scripts/plan.py --noise {rate})" if field == "noise" else ""))
+                hint = f" (write a teacher with scripts/plan.py --noise {rate})" if field == "noise" else ""
+                raise ValueError(f"{path}: teacher meta {field}={meta.get(field)!r}, this run has {want!r}{hint}")
         if rate and (faults is None or faults.shape != requests.shape[:2] + (2,)):
             raise ValueError(f"{path}: planned under noise without its faults of shape {requests.shape[:2] + (2,)}")
         if requests.ndim != 3 or requests.shape[1:] != (n_probes, 4) or not len(labels) == len(poses) == len(requests):
