@@ -210,7 +210,7 @@ class GradientDiagnostics(pl.Callback):
         if "grad_policy" in row:
             row["grad_ratio"] = row["grad_policy"] / max(row["grad_ce"], 1e-12)
         pl_module.log_dict({f"train/{k}": v for k, v in row.items() if k != "step"})
-        row |= {k: float(v) for k, v in terms.items()}
+        row |= {k: float(v.detach()) for k, v in terms.items()}
         self.rows.append(row)
         if trainer.is_global_zero:
             keys = list(dict.fromkeys(k for r in self.rows for k in r))
