@@ -70,6 +70,7 @@ def main() -> None:
     args = parser.parse_args()
     os.environ.setdefault("WANDB_MODE", "disabled")
     factors = dict(f.split("=", 1) for f in args.factor)
+    code = commit()  # the code this process imported, whatever the work tree holds by the time a run ends
     table = {}
     for name, override in factors.items():
         for seed in args.seeds:
@@ -77,7 +78,7 @@ def main() -> None:
             if not path.is_file():
                 record = {"factor": name, "override": override, "seed": seed, "base": [repo_path(c) for c in args.base],
                           "steps": args.steps, "mode": args.mode, "split": "val", "val_episodes": args.val_episodes,
-                          "commit": commit(), "hardware": hardware(),
+                          "commit": code, "hardware": hardware(),
                           "command": f"scripts/ablate.py --base {' '.join(args.base)} --steps {args.steps} "
                                      f"--seeds {seed} --mode {args.mode} --val-episodes {args.val_episodes} "
                                      f"--factor {shlex.quote(f'{name}={override}')}",
