@@ -148,14 +148,15 @@ def test_a_teacher_of_another_world_probe_count_or_sensor_is_refused_naming_the_
                             ({"scene": other_scene, "regions": PoseRegions(other_scene)}, "teacher meta scene="),
                             ({"n_probes": 4}, r"expected \(16, 4, 4\) \(n_probes=4\)"),
                             ({"noise": SensorNoise(miss_prob=0.1, false_contact_prob=0.1)},
-                             "teacher meta noise=0.0, this run has 0.1")):
+                             r"planned with sensor faults at rate 0.0 \(teacher meta noise\), this run's rate is 0.1")):
         with pytest.raises(ValueError, match=f"{path}: .*{message}"):
             load_teacher([path], **(world | change))
     noisy = tmp_path / "noisy.npz"
     teacher(noisy, noise=SensorNoise(miss_prob=0.2, false_contact_prob=0.2))
     loaded = load_teacher([noisy], **world, noise=SensorNoise(miss_prob=0.2, false_contact_prob=0.2))
     assert loaded["faults"].shape == (16, 3, 2)
-    with pytest.raises(ValueError, match=f"{noisy}: teacher meta noise=0.2, this run has 0.0"):
+    with pytest.raises(ValueError, match=f"{noisy}: planned with sensor faults at rate 0.2 .*rate is 0.0: write a "
+                                         "teacher with scripts/plan.py --noise 0.0"):
         load_teacher([noisy], **world)
     with pytest.raises(ValueError, match="one rate"):
         teacher(tmp_path / "blurred.npz", noise=SensorNoise(position_std=0.01))
@@ -175,7 +176,7 @@ def test_a_teacher_of_another_world_probe_count_or_sensor_is_refused_naming_the_
 def test_a_teacher_pose_outside_the_training_region_is_refused(tmp_path):
     path = tmp_path / "val.npz"
     teacher(path, split="val")
-    with pytest.raises(ValueError, match=f"{path}: 16 of 16 teacher poses lie outside the training region"):
+    with pytest.raises(ValueError, match=f"{path}: 16 of 16 poses lie outside the training region"):
         load_teacher([path], object_set_name="hg4", scene=Scene(), regions=PoseRegions(), n_probes=3)
 
 

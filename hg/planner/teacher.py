@@ -119,16 +119,21 @@ def load_teacher(paths: list[str | Path], *, object_set_name: str, scene: Scene,
                                           "scene": asdict(scene), "regions": regions_meta(regions),
                                           "sensor": asdict(noise)}))  # as the meta holds them: tuples as lists
         for field, want in expected.items():
-            if (meta["schema"] >= 1 or field in meta) and meta.get(field) != want:  # schema 0: what it carries
-                hint = f" (write a teacher with scripts/plan.py --noise {rate})" if field == "noise" else ""
-                raise ValueError(f"{path}: teacher meta {field}={meta.get(field)!r}, this run has {want!r}{hint}")
+            have = meta.get(field)
+            if (meta["schema"] < 1 and field not in meta) or have == want:  # schema 0: checked on what it carries
+                continue
+            if field == "noise":
+                raise ValueError(f"{path}: planned with sensor faults at rate {have} (teacher meta noise), this run's "
+                                 f"rate is {want}: write a teacher with scripts/plan.py --noise {want}")
+            raise ValueError(f"{path}: teacher meta {field}={have!r}, this run has {want!r}")
         if rate and (faults is None or faults.shape != requests.shape[:2] + (2,)):
             raise ValueError(f"{path}: planned under noise without its faults of shape {requests.shape[:2] + (2,)}")
         if requests.ndim != 3 or requests.shape[1:] != (n_probes, 4) or not len(labels) == len(poses) == len(requests):
             raise ValueError(f"{path}: teacher requests of shape {requests.shape} for {len(labels)} episodes, expected "
                              f"({len(labels)}, {n_probes}, 4) (n_probes={n_probes})")
         if (outside := int((regions.split_of(poses) != SPLITS.index("train")).sum())):
-            raise ValueError(f"{path}: {outside} of {len(poses)} teacher poses lie outside the training region")
+            raise ValueError(f"{path}: {outside} of {len(poses)} poses lie outside the training region (a teacher's "
+                             "episodes are training data)")
         parts.append((labels, poses, requests, faults))
     labels, poses, requests, faults = zip(*parts)
     return {"labels": torch.from_numpy(np.concatenate(labels)).long(), "poses": torch.from_numpy(np.concatenate(poses)),
