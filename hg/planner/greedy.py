@@ -75,11 +75,11 @@ class GreedyPlanner:
     def __init__(self, classifier: LibraryClassifier, bin: float = 0.01) -> None:
         if bin <= 0:
             raise ValueError(f"GreedyPlanner: bin={bin} must be > 0")
-        self.classifier, self.noise = classifier, classifier.noise
+        self.noise = classifier.noise
         self.n_bins, self.n_classes = int(np.ceil(classifier.probe_length / bin)) + 2, classifier.n_classes
         # the library's episodes as they were drawn (the classifier holds them by class): weighed in that order the
-        # entropy rounds as it always has, so the planner's choices, teacher files and table rows are reproduced to
-        # the bit (a rounding tie between two mirror-image candidates would otherwise go either way)
+        # entropy rounds as it did before the planner moved here (scripts/planner_ceiling.py), so it chooses the same
+        # probes to the bit, and a rounding tie between two mirror-image candidates goes the same way
         self.drawn = classifier.drawn.cpu()
         library = classifier.library.T[classifier.drawn].cpu().numpy()  # (L, C)
         self.cells = cell_matrix(reading_bins(library, bin, self.n_bins),
