@@ -1,9 +1,11 @@
-"""Times real training steps (Trainer.fit) of a config on this machine and projects its full protocol.
+"""Times real training steps (Trainer.fit) of a composition of configs on this machine and projects its full protocol.
 
 The step time is split into simulator (reset + probes), forward (policy rollout forwards, the loss pass and
 Lightning's bookkeeping) and backward (backward + optimizer step). Validation is timed once and counted
 max_steps / val_check_interval times in the projection. Last line: JSON with steps_per_s, sim_fraction,
 projected_paper_minutes and the split.
+
+    .venv/bin/python scripts/bench_train.py --config configs/side_scan.yaml --config configs/parts/touch_sets.yaml
 """
 from __future__ import annotations
 
@@ -56,16 +58,19 @@ class StepTimer(pl.Callback):
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--config", default="configs/pcrn_fc.yaml")
+    parser.add_argument("--config", action="append", default=[],
+                        help="config files combined in order, as `hg fit --config` (default: configs/pcrn_fc.yaml)")
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--warmup", type=int, default=10)
     args, overrides = parser.parse_known_args()
+    configs = args.config or ["configs/pcrn_fc.yaml"]
+    composition = [a for c in configs for a in ("--config", c)]
     with tempfile.TemporaryDirectory() as tmp:
-        protocol = cli(["--config", args.config, *overrides], run=False)
+        protocol = cli([*composition, *overrides], run=False)
         paper_steps = protocol.trainer.max_steps
         val_every = protocol.trainer.val_check_interval
         timer = StepTimer(args.warmup)
-        run = cli(["--config", args.config, *overrides, "--trainer.logger", "false",
+        run = cli([*composition, *overrides, "--trainer.logger", "false",
                    "--trainer.max_steps", str(args.steps + args.warmup), "--trainer.limit_val_batches", "0",
                    "--trainer.enable_progress_bar", "false", "--trainer.default_root_dir", tmp,
                    "--checkpoint.dirpath", tmp, "--checkpoint.monitor", "null", "--checkpoint.save_last", "false"],
@@ -73,13 +78,13 @@ def main() -> None:
         run.trainer.callbacks.append(timer)
         run.trainer.fit(run.model, datamodule=run.datamodule)
         start = time.perf_counter()
-        validate = cli(["--config", args.config, *overrides, "--trainer.logger", "false",
+        validate = cli([*composition, *overrides, "--trainer.logger", "false",
                         "--trainer.enable_progress_bar", "false", "--trainer.default_root_dir", tmp], run=False)
         validate.trainer.validate(run.model, datamodule=validate.datamodule, verbose=False)
         val_seconds = time.perf_counter() - start
     step = timer.step_time / timer.steps
     figures = {
-        "config": args.config,
+        "configs": configs,
         "steps_timed": timer.steps,
         "steps_per_s": round(1 / step, 2),
         "step_ms": round(1000 * step, 1),

@@ -2,8 +2,10 @@
 
 Writes into --out, per class: a PNG per probe (the arm at that probe's pose, rays and touches so far), a GIF of
 them, and the touched points over the object mesh; with --maps also where the policy probes over the whole split
-and the confusion matrices. The world comes from the checkpoint's datamodule settings through the `hg` CLI, with
---config files and --mode applied on top. The last line printed is JSON listing the files.
+and the confusion matrices. The model is the checkpoint's composition (its encoder, policy and heads, rebuilt from
+its hyperparameters); the predictions shown are its learned heads' (`model.predict`, no library classifier). The
+world comes from the checkpoint's datamodule settings through the `hg` CLI, with --config files (in order) and
+--mode applied on top. The last line printed is JSON listing the files.
 
     python scripts/render_episode.py --ckpt runs/haptic-glance/<id>/checkpoints/last.ckpt --out docs/img
 """
@@ -13,6 +15,8 @@ import argparse
 import json
 import sys
 from pathlib import Path
+
+import torch
 
 from hg.lightning.cli import datamodule_from_checkpoint
 from hg.lightning.module import HapticGlance
@@ -38,13 +42,16 @@ def main(argv: list[str]) -> list[Path]:
     if not args.ckpt.is_file():
         raise FileNotFoundError(f"--ckpt {args.ckpt}: file not found")
 
-    datamodule = datamodule_from_checkpoint(args.ckpt, args.config, ["--data.mode", args.mode] if args.mode else [])
+    saved = torch.load(args.ckpt, map_location="cpu", weights_only=False)["hyper_parameters"]
+    parts = {k: v for k, v in saved.items() if not k.startswith("_") and k not in ("n_probes", "n_classes")}
+    datamodule = datamodule_from_checkpoint(args.ckpt, args.config, [  # the CLI parses the model's parts too
+        "--model", json.dumps(parts), *(["--data.mode", args.mode] if args.mode else [])])
     model = HapticGlance.load_from_checkpoint(args.ckpt, map_location="cpu").eval()
     if model.hparams.n_classes != datamodule.n_classes:
         raise ValueError(f"{args.ckpt}: the model knows {model.hparams.n_classes} classes, the data "
                          f"{datamodule.n_classes} ({', '.join(datamodule.class_names)}); check --config")
     loader = datamodule.test_dataloader() if args.split == "test" else datamodule.val_dataloader()
-    model.sim = datamodule.make_simulator()
+    model.attach(datamodule.make_simulator())  # the touch sets' mirror line is the simulator's probe line
     try:
         parts = []
         for batch in loader:  # whole batches, so each episode's rollout is the one the evaluation scored

@@ -1,13 +1,25 @@
-"""Reproduce the paper's Table 1 side by side: every row trained with the paper protocol, several seeds, all
-scored on the same held-out test episodes, merged into docs/results/table1.{md,json,png}.
+"""Reproduce the paper's Table 1 side by side: every row trained with the paper protocol, several seeds, all scored
+once on the same held-out test episodes, merged into docs/results/table1.{md,json,png}.
 
-Each (row, seed) is one training run in a child process. A finished run leaves a small JSON in
-`<out>/runs/`; it is never recomputed, so rows can be run separately (even on other machines) and merged, and
-an interrupted run resumes from its last checkpoint in `<runs-dir>`. The merge reads every run JSON present.
+A row is a named composition: config files combined in order (as several `hg fit --config` flags) and optional CLI
+overrides, or scripts/plan.py's arguments for a row that plans instead of learning. Each row says what makes its
+prediction (the learned heads, the library classifier, or both summed: "learned", "library", "mixed") and what
+chooses its probes ("learned" policy, "fixed" scan, "random" probes, the greedy "planner").
 
-    .venv/bin/python scripts/reproduce_table1.py                           # every row, seeds 0 1 2, then merge
-    .venv/bin/python scripts/reproduce_table1.py --rows lstm --seeds 0     # one run, then merge what exists
-    .venv/bin/python scripts/reproduce_table1.py --merge-only
+Each (row, seed) is one run in a child process. A finished run leaves its record, a small JSON in
+`<out>/table1_runs/` (its composition, its command, the accuracy after each probe, commit, hardware); it is never
+recomputed, so rows can be run separately (even on other machines) and merged, and an interrupted run resumes from
+its last checkpoint in `<runs-dir>`. SIGTERM stops the running children (Lightning ends a fit at the next step; the
+run resumes next time) and starts no more. Each record is one read of the test split; the table counts them per row.
+
+    .venv/bin/python scripts/reproduce_table1.py --jobs 2                     # every row, seeds 0 1 2
+    .venv/bin/python scripts/reproduce_table1.py --rows lstm --seeds 0        # one run; finished runs are reused
+    .venv/bin/python scripts/reproduce_table1.py --merge-only                 # table1.* and docs/ablations.md
+    .venv/bin/python scripts/reproduce_table1.py --ablations                  # docs/ablations.md alone
+
+Training never rewrites the table: `--merge-only` does, from the records of the rows defined here. The records of
+the hg4 research (`<out>/runs/`, made by rows whose configs were deleted at 42a3851) are listed in the ablations page
+(`--ablations`: docs/ablations.md, beside --out), never merged into the table.
 
 The last line printed is JSON: for each row its mean accuracy after each probe, and the commit.
 """
@@ -16,300 +28,98 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import subprocess
 import sys
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
+import yaml
+
+from hg.atomic import write_atomic
+from hg.provenance import commit, hardware, repo_path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from hg.atomic import write_atomic  # noqa: E402
-from hg.provenance import commit, hardware, repo_path  # noqa: E402
-
 TEST_EPISODES = 2048  # the fixed held-out test set every row is scored on (data.eval_seed 0)
 EVAL_SEED = 0
 SEEDS = (0, 1, 2)  # training seeds of every row (the protocol)
+RUNS = "table1_runs"  # <out>/RUNS: the records of the rows defined here
+OLD_RUNS = "runs"  # <out>/OLD_RUNS: the records of the hg4 research, made by rows whose configs are deleted
+LAST_OLD_CONFIGS = "743bddf"  # the last commit with those 77 configs (and the script that ran them)
+SHOWN = (2, 5, 10)  # probe counts of the one-line summaries
+
+Prediction = Literal["learned", "library", "mixed"]
+Probes = Literal["learned", "fixed", "random", "planner"]
+COLUMN = {"learned": "", "library": "_library", "mixed": "_mixed"}  # a prediction's suffix in the logged metrics
 
 
 @dataclass(frozen=True)
 class Row:
-    """A row of the table; its config is configs/<row name>.yaml (config_of)."""
+    """A row of the table: a composition of configs (+ CLI overrides) trained and tested, or scripts/plan.py run with
+    `plan` (a planner row; `probes` says which of its results: "planner", or probes placed by no one, "fixed" or
+    "random", named by the same library classifier)."""
+
     label: str
-    paper: str | None = None  # the paper's column this row reproduces
-    learned: bool = True
-    encoder: str = "pcrn"
-    planner: tuple[str, ...] = ()  # a row that plans instead of learning: scripts/plan.py's library arguments
-    planned: str = "planner"  # which of plan.py's results a planner row reports: its "planner", or probes
-    # placed by no one ("fixed": the straight scan, "random") named by the same weighing of its library
-    namer_of: str | None = None  # the row whose library namer names this row's probes: the policy's margin over
-    # them is read with that row's namer alone on both sides (the same classifier)
+    prediction: Prediction
+    probes: Probes
+    configs: tuple[str, ...] = ()  # relative to the repository, combined in order (later ones override)
+    overrides: tuple[str, ...] = ()  # CLI overrides after the configs
+    plan: tuple[str, ...] = ()  # a planner row: scripts/plan.py's library and prober arguments
     scores: str | None = None  # a row that trains nothing: it scores that row's best checkpoints (same seed) as its
-    # config reads them (e.g. with model.library_namer), so it runs after that row
+    # composition reads them (e.g. with the library classifier), so it runs after that row
+    paper: str | None = None  # the paper's column this row reproduces
+    was: str | None = None  # the row of the hg4 records (<out>/runs) this one replaces
+
+    def definition(self) -> dict:
+        """What makes the row's numbers: a record made otherwise is another row's."""
+        return {"prediction": self.prediction, "probes": self.probes, "configs": list(self.configs),
+                "overrides": list(self.overrides), "plan": list(self.plan), "scores": self.scores}
 
 
-SIDE_SCAN = "side-picking scan (steep first pair) + PCRN-FC + wide touch set"
-FINAL_TOUCH_SET = "a touch set of its own after the 10th probe"
-LONG_DECAY = "16000 steps, learning rate falling to 5%"
-SIDE_LEARNED = ("PCRN-FC+ from the side-picking scan (steep first pair) + wide touch set, std shrinking to a tenth, 16000 "
-                "steps with the policy from step 8000, policy starting exactly on the scan and held near it, learning "
-                f"rate falling to 5%, {FINAL_TOUCH_SET}")
-# the planner's library: training episodes with their moves along the line and mirror images (docs/training.md)
-PLANNER_LIBRARY = ("--library-split", "train", "--library", "32768", "--shifts", "5", "--mirror")
-PLANNER_LIBRARY_65K = tuple("65536" if arg == "32768" else arg for arg in PLANNER_LIBRARY)  # twice the poses
-# the library of the namer of the copy of the 65536-pose teachers (model.library_namer data/planner/train65k_s10.npz)
-NAMER_65K = "pcrn_fc_candidates_readings_only_imitate_planner65k_final_mirror_library_namer"
-NAMER_65K_LIBRARY = (*PLANNER_LIBRARY_65K, "--library-seed", "10", "--no-planner")
+TOUCH_SETS, LONG, STABLE_RL = "configs/parts/touch_sets.yaml", "configs/parts/long.yaml", "configs/parts/stable_rl.yaml"
+LIBRARY = "configs/parts/library_classifier.yaml"  # planner_copy's library classifier: data/planner/train65k_s10.npz
+PLANNER_COPY = ("configs/planner_copy.yaml", STABLE_RL, TOUCH_SETS, LONG)
+# the greedy planner's library: 65536 training episodes, with their moves along the line and mirror images
+PLANNER_LIBRARY = ("--library-split", "train", "--library", "65536", "--shifts", "5", "--mirror")
+# the library of planner_copy's library classifier (the recipe of data/planner/train65k_s10.npz), without the planner
+CLASSIFIER_LIBRARY = (*PLANNER_LIBRARY, "--library-seed", "10", "--no-planner")
+COPY_65K = "pcrn_fc_candidates_readings_only_imitate_planner65k_final_mirror"  # its hg4 row
 ROWS = {
-    "pcrn_fc": Row("PCRN-FC", paper="PCRN-FC"),
-    "pcrn_nclass": Row("PCRN-N-class", paper="PCRN-N-class"),
-    "lstm": Row("LSTM", paper="LSTM", encoder="lstm"),
-    "random": Row("random probes + PCRN-FC", learned=False),
-    "line_scan": Row("line scan + PCRN-FC", learned=False),
-    "pcrn_fc_plus": Row("PCRN-FC+ (beyond the paper)"),
-    "centre_scan": Row("centre-out scan + PCRN-FC (beyond the paper)", learned=False),
-    "pcrn_fc_centre": Row("PCRN-FC+ from the centre-out scan (beyond the paper)"),
-    "centre_scan_touchset": Row("centre-out scan + PCRN-FC + touch set (beyond the paper)", learned=False),
-    "pcrn_fc_centre_touchset": Row("PCRN-FC+ from the centre-out scan + touch set (beyond the paper)"),
-    "pcrn_fc_centre_touchset_warmup": Row("PCRN-FC+ from the centre-out scan + touch set, policy from step 4000 "
-                                          "(beyond the paper)"),
-    "fan_scan_touchset": Row("fanned scan + PCRN-FC + touch set (beyond the paper)",
-                             learned=False),
-    "follow_scan_touchset": Row("centre-out scan following the touches + PCRN-FC + touch set (beyond the paper)",
-                                learned=False),
-    "fan_follow_scan_touchset": Row("fanned scan following the touches + PCRN-FC + touch set (beyond the paper)",
-                                    learned=False),
-    "centre_scan_touchset_wide": Row("centre-out scan + PCRN-FC + wide touch set (beyond the paper)", learned=False),
-    "side_scan_touchset_wide": Row(f"{SIDE_SCAN} (beyond the paper)", learned=False),
-    "side_scan_touchset_wide_long_lr_decay": Row(f"{SIDE_SCAN}, {LONG_DECAY} (beyond the paper)", learned=False),
-    "side_scan_touchset_wide_final_long_lr_decay": Row(f"{SIDE_SCAN}, {FINAL_TOUCH_SET}, {LONG_DECAY} (beyond the "
-                                                       "paper)", learned=False),
-    "side_scan_touchset_wide_final_mirror_long_lr_decay": Row(
-        f"{SIDE_SCAN}, {FINAL_TOUCH_SET}, both reading an episode and its mirror image across the line alike, "
-        f"{LONG_DECAY} (beyond the paper)", learned=False),
-    "centre_scan_touchset_wide_long": Row("centre-out scan + PCRN-FC + wide touch set, 16000 steps (beyond the "
-                                          "paper)", learned=False),
-    "centre_scan_touchset_wide_lr_decay": Row("centre-out scan + PCRN-FC + wide touch set, learning rate falling to "
-                                              "5% (beyond the paper)", learned=False),
-    "centre_scan_touchset_wide_long_lr_decay": Row("centre-out scan + PCRN-FC + wide touch set, 16000 steps, learning "
-                                                   "rate falling to 5% (beyond the paper)", learned=False),
-    "centre_scan_touchset_wide_32k_lr_decay": Row("centre-out scan + PCRN-FC + wide touch set, 32000 steps, learning "
-                                                  "rate falling to 5% (beyond the paper)", learned=False),
-    "coarse_scan_touchset_wide_lr_decay": Row("coarse-first scan + PCRN-FC + wide touch set, learning rate falling "
-                                              "to 5% (beyond the paper)", learned=False),
-    "coarse_scan_touchset_wide_prefix_lr_decay": Row("coarse-first scan + PCRN-FC + wide touch set told the prefix, "
-                                                     "learning rate falling to 5% (beyond the paper)", learned=False),
-    "centre_scan_touchset_wide_prefix_lr_decay": Row("centre-out scan + PCRN-FC + wide touch set told the prefix, "
-                                                     "learning rate falling to 5% (beyond the paper)", learned=False),
-    "follow2_scan_touchset_wide_lr_decay": Row("centre-out scan following its first touch for 2 probes + PCRN-FC + "
-                                               "wide touch set, learning rate falling to 5% (beyond the paper)",
-                                               learned=False),
-    "centre_scan_touchset_alone_lr_decay": Row("centre-out scan + wide touch set alone, no PCRN, learning rate "
-                                               "falling to 5% (beyond the paper)", learned=False),
-    "follow2_scan_touchset_alone_lr_decay": Row("centre-out scan following its first touch for 2 probes + wide touch "
-                                                "set alone, no PCRN, learning rate falling to 5% (beyond the paper)",
-                                                learned=False),
-    "centre_scan_touchset_wide_last_lr_decay": Row("centre-out scan + PCRN-FC + wide touch set scored after the 10th "
-                                                   "probe only, learning rate falling to 5% (beyond the paper)",
-                                                   learned=False),
-    "follow2_scan_touchset_wide_last_lr_decay": Row("centre-out scan following its first touch for 2 probes + "
-                                                    "PCRN-FC + wide touch set scored after the 10th probe only, "
-                                                    "learning rate falling to 5% (beyond the paper)", learned=False),
-    "follow2_scan_touchset_wide_final_lr_decay": Row("centre-out scan following its first touch for 2 probes + PCRN-FC "
-                                                     "+ wide touch set, a touch set of its own after the 10th probe, "
-                                                     "learning rate falling to 5% (beyond the paper)", learned=False),
-    "coarse_scan_touchset_wide_final_lr_decay": Row("coarse-first scan + PCRN-FC + wide touch set, a touch set of its own after the "
-                                                    "10th probe, learning rate falling to 5% (beyond the paper)",
-                                                    learned=False),
-    "coarse_follow2_scan_touchset_wide_final_lr_decay": Row(
-        "coarse-first scan following its first touch for 2 probes + PCRN-FC + wide touch set, a touch set of its own "
-        "after the 10th probe, learning rate falling to 5% (beyond the paper)", learned=False),
-    "centre_scan_touchset_wide_ema": Row("centre-out scan + PCRN-FC + wide touch set, moving average of the weights "
-                                         "(beyond the paper)", learned=False),
-    "pcrn_fc_centre_touchset_warmup_wide": Row("PCRN-FC+ from the centre-out scan + wide touch set, policy from step "
-                                               "4000 (beyond the paper)"),
-    "pcrn_fc_centre_touchset_warmup_wide_std_decay": Row(
-        "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth "
-        "(beyond the paper)"),
-    "pcrn_fc_centre_touchset_warmup_wide_std_decay_lean": Row(
-        "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth, room "
-        "to lean in the prior (beyond the paper)"),
-    "pcrn_fc_centre_touchset_warmup_wide_std_decay_long": Row(
-        "PCRN-FC+ from the centre-out scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
-        "from step 8000 (beyond the paper)"),
-    "pcrn_fc_centre_touchset_warmup_wide_std_decay_exact": Row(
-        "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth, "
-        "policy starting exactly on the scan (beyond the paper)"),
-    "pcrn_fc_centre_touchset_warmup_wide_std_decay_long_exact": Row(
-        "PCRN-FC+ from the centre-out scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
-        "from step 8000, policy starting exactly on the scan (beyond the paper)"),
-    "pcrn_fc_centre_touchset_warmup_wide_std_decay_exact_anchor": Row(
-        "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth, "
-        "policy starting exactly on the scan and held near it (beyond the paper)"),
-    "pcrn_fc_centre_touchset_warmup_wide_std_decay_exact_mean_share": Row(
-        "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth, "
-        "policy starting exactly on the scan, half of each batch probed with its mean action (beyond the paper)"),
-    "pcrn_fc_centre_touchset_warmup_wide_std_decay_exact_anchor_mean_share": Row(
-        "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth, "
-        "policy starting exactly on the scan and held near it, half of each batch probed with its mean action "
-        "(beyond the paper)"),
-    "pcrn_fc_centre_touchset_warmup_wide_std_decay_exact_anchor_lr_decay": Row(
-        "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth, "
-        "policy starting exactly on the scan and held near it, learning rate falling to 5% (beyond the paper)"),
-    "pcrn_fc_centre_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay": Row(
-        "PCRN-FC+ from the centre-out scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
-        "from step 8000, policy starting exactly on the scan and held near it, learning rate falling to 5% (beyond "
-        "the paper)"),
-    "pcrn_fc_centre_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_reads_touchset": Row(
-        "PCRN-FC+ from the centre-out scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
-        "from step 8000, policy starting exactly on the scan and held near it, learning rate falling to 5%, the policy "
-        "reading the touch set's pooled features (beyond the paper)"),
-    "pcrn_fc_follow2_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay": Row(
-        "PCRN-FC+ from the centre-out scan following its first touch for 2 probes + wide touch set, std shrinking to "
-        "a tenth, 16000 steps with the policy from step 8000, policy starting exactly on the scan and held near it, "
-        "learning rate falling to 5% (beyond the paper)"),
-    "pcrn_fc_follow2_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final": Row(
-        "PCRN-FC+ from the centre-out scan following its first touch for 2 probes + wide touch set, std shrinking to "
-        "a tenth, 16000 steps with the policy from step 8000, policy starting exactly on the scan and held near it, "
-        "learning rate falling to 5%, a touch set of its own after the 10th probe (beyond the paper)"),
-    "pcrn_fc_follow2_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final_ema": Row(
-        "PCRN-FC+ from the centre-out scan following its first touch for 2 probes + wide touch set, std shrinking to "
-        "a tenth, 16000 steps with the policy from step 8000, policy starting exactly on the scan and held near it, "
-        "learning rate falling to 5%, a touch set of its own after the 10th probe, moving average of the weights "
-        "(beyond the paper)"),
-    "pcrn_fc_coarse_follow2_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final": Row(
-        "PCRN-FC+ from the coarse-first scan following its first touch for 2 probes + wide touch set, std shrinking "
-        "to a tenth, 16000 steps with the policy from step 8000, policy starting exactly on the scan and held near "
-        "it, learning rate falling to 5%, a touch set of its own after the 10th probe (beyond the paper)"),
-    "pcrn_fc_side_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final": Row(
-        f"{SIDE_LEARNED} (beyond the paper)"),
-    "pcrn_fc_side_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final_mirror": Row(
-        f"{SIDE_LEARNED}, both touch sets reading an episode and its mirror image across the line alike (beyond the "
-        "paper)"),
-    "pcrn_fc_side_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final_mirror_std05": Row(
-        f"{SIDE_LEARNED}, both touch sets reading an episode and its mirror image across the line alike, the std "
-        "shrinking to a twentieth instead (beyond the paper)"),
-    "pcrn_fc_side_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final_mirror_free_lean": Row(
-        f"{SIDE_LEARNED}, both touch sets reading an episode and its mirror image across the line alike, the lean "
-        "across the line left to the policy (beyond the paper)"),
-    "pcrn_fc_side_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final_mirror_free_py": Row(
-        f"{SIDE_LEARNED}, both touch sets reading an episode and its mirror image across the line alike, where the "
-        "probes enter the line left to the policy (beyond the paper)"),
-    "pcrn_fc_side_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final_mirror_anchor01": Row(
-        f"{SIDE_LEARNED}, both touch sets reading an episode and its mirror image across the line alike, the anchor "
-        "to the scan at a tenth of its weight (beyond the paper)"),
-    "pcrn_fc_side_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final_mirror_encoder": Row(
-        f"{SIDE_LEARNED}, the whole model (encoder, classifiers, policy) reading an episode and its mirror image "
-        "across the line alike (beyond the paper)"),
-    "planner": Row("greedy information-gain planner over training episodes (moved along the line and mirrored), "
-                   "Bayes classifier, no learning (beyond the paper)", learned=False, planner=PLANNER_LIBRARY),
-    "planner65k": Row("greedy information-gain planner over twice as many training episodes (65536, moved along the "
-                      "line and mirrored), Bayes classifier, no learning (beyond the paper)", learned=False,
-                      planner=PLANNER_LIBRARY_65K),
-    "candidate_scan_namer65k": Row("straight centre-out scan of the greedy planner's candidate places, named by the "
-                                   "namer of the copy of the 65536-pose teachers alone, no learning (beyond the paper)",
-                                   learned=False, planner=(*NAMER_65K_LIBRARY, "--fixed"), planned="fixed",
-                                   namer_of=NAMER_65K),
-    "random_candidates_namer65k": Row("random candidates of the greedy planner, named by the namer of the copy of the "
-                                      "65536-pose teachers alone, no learning (beyond the paper)", learned=False,
-                                      planner=(*NAMER_65K_LIBRARY, "--random"), planned="random", namer_of=NAMER_65K),
-    "pcrn_fc_imitate_planner_final_mirror": Row(
-        "PCRN-FC+ copying the greedy planner for 8000 steps, then the hybrid rule + wide touch set, std shrinking to a "
-        f"tenth, 16000 steps, learning rate falling to 5%, {FINAL_TOUCH_SET}, both touch sets reading an episode and "
-        "its mirror image across the line alike (beyond the paper)"),
-    "pcrn_fc_candidates_imitate_planner_final_mirror": Row(
-        "PCRN-FC+ choosing among the greedy planner's candidate probes, copying the planner for 8000 steps, then the "
-        f"hybrid rule + wide touch set, temperature falling to a tenth, 16000 steps, learning rate falling to 5%, "
-        f"{FINAL_TOUCH_SET}, both touch sets reading an episode and its mirror image across the line alike (beyond "
-        "the paper)"),
-    "pcrn_fc_candidates_reads_probes_imitate_planner_final_mirror": Row(
-        "PCRN-FC+ choosing among the greedy planner's candidate probes from PCRN's state and what each candidate read "
-        "so far, never one twice, copying the planner for 8000 steps, then the hybrid rule + wide touch set, "
-        f"temperature falling to a tenth, 16000 steps, learning rate falling to 5%, {FINAL_TOUCH_SET}, both touch "
-        "sets reading an episode and its mirror image across the line alike (beyond the paper)"),
-    "pcrn_fc_candidates_reads_probes_random_share_imitate_planner_final_mirror": Row(
-        "PCRN-FC+ choosing among the greedy planner's candidate probes from PCRN's state and what each candidate read "
-        "so far, never one twice, copying the planner for 8000 steps, then the hybrid rule + wide touch set with a "
-        "quarter of the episodes probed with random candidates for the classifiers, temperature falling to a tenth, "
-        f"16000 steps, learning rate falling to 5%, {FINAL_TOUCH_SET}, both touch sets reading an episode and its "
-        "mirror image across the line alike (beyond the paper)"),
-    "pcrn_fc_candidates_along_line_imitate_planner_final_mirror": Row(
-        "PCRN-FC+ choosing among the greedy planner's candidate probes from PCRN's state and what each candidate read "
-        "so far, the same function of the readings at every place along the line, never one twice, copying the "
-        "planner for 8000 steps, then the hybrid rule + wide touch set, temperature falling to a tenth, 16000 steps, "
-        f"learning rate falling to 5%, {FINAL_TOUCH_SET}, both touch sets reading an episode and its mirror image "
-        "across the line alike (beyond the paper)"),
-    "pcrn_fc_candidates_readings_only_imitate_planner_final_mirror": Row(
-        "PCRN-FC+ choosing among the greedy planner's candidate probes from what each candidate read so far alone (not "
-        "PCRN's state), never one twice, copying the planner for 8000 steps, then the hybrid rule + wide touch set, "
-        f"temperature falling to a tenth, 16000 steps, learning rate falling to 5%, {FINAL_TOUCH_SET}, both touch "
-        "sets reading an episode and its mirror image across the line alike (beyond the paper)"),
-    "pcrn_fc_candidates_readings_only_imitate_planner_final_mirror_library_namer": Row(
-        "PCRN-FC+ choosing among the greedy planner's candidate probes from what each candidate read so far alone "
-        "(the trained models of the row without the namer), with the greedy planner's namer over a library of training "
-        "episodes added to every prediction (beyond the paper)",
-        scores="pcrn_fc_candidates_readings_only_imitate_planner_final_mirror"),
-    "pcrn_fc_candidates_readings_only_imitate_planner_final_mirror_library_namer65k": Row(
-        "PCRN-FC+ choosing among the greedy planner's candidate probes from what each candidate read so far alone "
-        "(the trained models of the row without the namer), with the greedy planner's namer over a library of twice as "
-        "many training episodes (65536, with their shifts and mirror images) added to every prediction (beyond the "
-        "paper)",
-        scores="pcrn_fc_candidates_readings_only_imitate_planner_final_mirror"),
-    "pcrn_fc_candidates_readings_only_imitate_planner65k_final_mirror": Row(
-        "PCRN-FC+ choosing among the greedy planner's candidate probes from what each candidate read so far alone (not "
-        "PCRN's state), never one twice, copying the planner over twice as many training episodes (65536) for 8000 "
-        "steps, then the hybrid rule + wide touch set, temperature falling to a tenth, 16000 steps, learning rate "
-        f"falling to 5%, {FINAL_TOUCH_SET}, both touch sets reading an episode and its mirror image across the line "
-        "alike (beyond the paper)"),
-    "pcrn_fc_candidates_readings_only_imitate_planner65k_final_mirror_library_namer": Row(
-        "PCRN-FC+ choosing among the greedy planner's candidate probes from what each candidate read so far alone, "
-        "copying the planner over 65536 training episodes (the trained models of the row without the namer), with its "
-        "namer over the same library added to every prediction (beyond the paper)",
-        scores="pcrn_fc_candidates_readings_only_imitate_planner65k_final_mirror"),
-    "pcrn_fc_candidates_readings_only_imitate_only_planner65k_final_mirror_library_namer": Row(
-        "PCRN-FC+ choosing among the greedy planner's candidate probes from what each candidate read so far alone, "
-        "never one twice, copying the planner over 65536 training episodes for 8000 steps and nothing after, wide "
-        f"touch set, learning rate falling to 5%, {FINAL_TOUCH_SET}, both touch sets reading an episode and its mirror "
-        "image across the line alike, with the planner's namer added to every prediction (beyond the paper)"),
-    "pcrn_fc_candidates_readings_only_belief_imitate_only_planner65k_final_mirror_library_namer": Row(
-        "PCRN-FC+ choosing among the greedy planner's candidate probes from what each candidate read so far and what "
-        "the planner's namer believes of them (class, where the object lies), never one twice, copying the planner "
-        "over 65536 training episodes for 8000 steps and nothing after, wide touch set, learning rate falling to 5%, "
-        f"{FINAL_TOUCH_SET}, both touch sets reading an episode and its mirror image across the line alike, with the "
-        "namer added to every prediction (beyond the paper)"),
-    "pcrn_fc_candidates_readings_only_along_line_classifier_imitate_planner_final_mirror": Row(
-        "PCRN-FC+ choosing among the greedy planner's candidate probes from what each candidate read so far alone (not "
-        "PCRN's state), never one twice, copying the planner for 8000 steps, then the hybrid rule + wide touch set + "
-        "a classifier of the readings by candidate the same along the line, temperature falling to a tenth, 16000 "
-        f"steps, learning rate falling to 5%, {FINAL_TOUCH_SET}, the touch sets and that classifier reading an "
-        "episode and its mirror image across the line alike (beyond the paper)"),
-    "pcrn_fc_candidates_imitate_planner_final_mirror_encoder": Row(
-        "PCRN-FC+ choosing among the greedy planner's candidate probes, copying the planner for 8000 steps, then the "
-        f"hybrid rule + wide touch set, temperature falling to a tenth, 16000 steps, learning rate falling to 5%, "
-        f"{FINAL_TOUCH_SET}, the touch sets, the encoder and the choice reading an episode and its mirror image across "
-        "the line alike (beyond the paper)"),
-    "pcrn_fc_coarse_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay": Row(
-        "PCRN-FC+ from the coarse-first scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
-        "from step 8000, policy starting exactly on the scan and held near it, learning rate falling to 5% (beyond "
-        "the paper)"),
-    "pcrn_fc_centre_touchset_warmup_wide_std_decay_exact_anchor_ema": Row(
-        "PCRN-FC+ from the centre-out scan + wide touch set, policy from step 4000, std shrinking to a tenth, "
-        "policy starting exactly on the scan and held near it, moving average of the weights (beyond the paper)"),
-    "pcrn_fc_centre_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_ema": Row(
-        "PCRN-FC+ from the centre-out scan + wide touch set, std shrinking to a tenth, 16000 steps with the policy "
-        "from step 8000, policy starting exactly on the scan and held near it, learning rate falling to 5%, moving "
-        "average of the weights (beyond the paper)"),
+    "pcrn_fc_as_written": Row("PCRN-FC, the paper's hybrid rule as written", "learned", "learned",
+                              ("configs/pcrn_fc.yaml",), paper="PCRN-FC", was="pcrn_fc"),
+    "pcrn_nclass_as_written": Row("PCRN-N-class, the paper's hybrid rule as written", "learned", "learned",
+                                  ("configs/pcrn_nclass.yaml",), paper="PCRN-N-class", was="pcrn_nclass"),
+    "lstm": Row("LSTM", "learned", "learned", ("configs/lstm.yaml",), paper="LSTM", was="lstm"),
+    "random": Row("random probes + PCRN-FC", "learned", "random", ("configs/random.yaml",), was="random"),
+    "line_scan": Row("line scan + PCRN-FC", "learned", "fixed", ("configs/line_scan.yaml",), was="line_scan"),
+    "side_scan": Row("side-picking scan + mirrored touch-set classifiers (fixed probes)", "learned", "fixed",
+                     ("configs/side_scan.yaml", TOUCH_SETS, LONG),
+                     was="side_scan_touchset_wide_final_mirror_long_lr_decay"),
+    "gaussian_on_side_scan": Row(
+        "learned Gaussian policy started on the side-picking scan + mirrored touch sets", "learned", "learned",
+        ("configs/gaussian_on_side_scan.yaml", STABLE_RL, TOUCH_SETS, LONG),
+        was="pcrn_fc_side_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final_mirror"),
+    "planner_copy": Row("a choice among the greedy planner's candidates, copying it, then the hybrid rule: its learned "
+                        "heads", "learned", "learned", PLANNER_COPY, was=COPY_65K),
+    "planner_copy_library": Row("planner_copy's probes, named by the library classifier alone", "library", "learned",
+                                (*PLANNER_COPY, LIBRARY), scores="planner_copy", was=f"{COPY_65K}_library_namer"),
+    "planner_copy_mixed": Row("planner_copy's probes, its heads and the library classifier summed", "mixed",
+                              "learned", (*PLANNER_COPY, LIBRARY), scores="planner_copy",
+                              was=f"{COPY_65K}_library_namer"),
+    "planner65k": Row("greedy information-gain planner over 65536 training poses, named by its library classifier (no "
+                      "learning)", "library", "planner", plan=PLANNER_LIBRARY, was="planner65k"),
+    "candidate_scan_library": Row("straight centre-out scan of the planner's candidate places, named by planner_copy's "
+                                  "library classifier (no learning)", "library", "fixed",
+                                  plan=(*CLASSIFIER_LIBRARY, "--fixed"), was="candidate_scan_namer65k"),
+    "random_candidates_library": Row("random candidates of the planner, named by planner_copy's library classifier "
+                                     "(no learning)", "library", "random", plan=(*CLASSIFIER_LIBRARY, "--random"),
+                                     was="random_candidates_namer65k"),
 }
-
-
-def config_of(row: str) -> str:
-    """The config that trains `row` (the script that plans, for a planner row), relative to the repository root."""
-    return "scripts/plan.py" if ROWS[row].planner else f"configs/{row}.yaml"
-
 
 # Table 1 of Riou et al. (ICASSP 2021): accuracy after k probes, 4 objects, held-out poses (no entry for k=1).
 PAPER = {
@@ -323,288 +133,481 @@ def run_name(row: str, seed: int) -> str:
     return f"{row}-seed{seed}"
 
 
+def record_path(out: Path, row: str, seed: int) -> Path:
+    return out / RUNS / f"{run_name(row, seed)}.json"
+
+
+def encoder_of(row: str) -> str | None:
+    """The class_path of the row's encoder, as its composition sets it (None for a planner row)."""
+    found = None
+    for config in ROWS[row].configs:
+        model = (yaml.safe_load((ROOT / config).read_text()) or {}).get("model") or {}
+        found = (model.get("encoder") or {}).get("class_path", found)
+    return found
+
+
 # -- one run (child process) -------------------------------------------------------------------------------
-def train_and_test(row: str, seed: int, runs_dir: Path, out_dir: Path, steps: int | None, jobs: int,
-                   test_episodes: int = TEST_EPISODES) -> None:
-    """Train one (row, seed) with the paper protocol, resuming from its last checkpoint; score the checkpoint
-    that was best on val on the test set; write the run JSON atomically (its presence marks the run done)."""
+def train_and_test(row: str, seed: int, runs_dir: Path, out: Path, jobs: int, test_episodes: int = TEST_EPISODES,
+                   add_configs: tuple[str, ...] = ()) -> None:
+    """Train one (row, seed) with the paper protocol, resuming from its last checkpoint; score the checkpoint that
+    was best on val on the test set (a scoring row: the best checkpoint of the row it scores; a planner row: plan on
+    the test episodes); write the run's record atomically (its presence marks the run done). `add_configs` come
+    after the row's composition (smoke tests: configs/parts/tiny.yaml)."""
     from hg.lightning.experiment import fit_and_test
 
+    spec = ROWS[row]
     code_commit = commit()  # the code this run trains with, read before it starts
-    name = run_name(row, seed)
-    source, checkpoint = ROWS[row].scores, None
-    if source:
-        source_run = out_dir / "runs" / f"{run_name(source, seed)}.json"
-        if not source_run.is_file():
-            raise FileNotFoundError(f"{source_run}: row {row} scores the checkpoints of row {source}; run its seed "
-                                    f"{seed} first")
-        checkpoint = ROOT / json.loads(source_run.read_text())["best_checkpoint"]
-    if ROWS[row].planner:
-        facts = plan_and_test(ROWS[row].planner, seed, test_episodes, planned=ROWS[row].planned)
+    if spec.plan:
+        facts = plan_and_test(spec.plan, seed, test_episodes, spec.probes)
     else:
-        facts = fit_and_test(ROOT / config_of(row), seed, runs_dir / name, eval_seed=EVAL_SEED,
-                             test_episodes=test_episodes, steps=steps, checkpoint=checkpoint)
-    if source:
-        facts["scores_checkpoint_of"] = source
-    result = {"row": row, "label": ROWS[row].label, "config": config_of(row), "seed": seed, **facts,
-              "parallel_jobs": jobs, "commit": code_commit, "hardware": hardware()}
-    write_atomic(out_dir / "runs" / f"{name}.json", json.dumps(result, indent=1) + "\n")
+        checkpoint = None
+        if spec.scores:
+            source = record_path(out, spec.scores, seed)
+            if not source.is_file():
+                raise FileNotFoundError(f"{source}: row {row} scores the checkpoints of row {spec.scores}; run its "
+                                        f"seed {seed} first")
+            scored = read_record(source)
+            check_definition(source, scored)
+            checkpoint = ROOT / scored["best_checkpoint"]
+        composition = [*spec.configs, *add_configs]
+        trained = fit_and_test([ROOT / c for c in composition], seed, runs_dir / run_name(row, seed),
+                               eval_seed=EVAL_SEED, test_episodes=test_episodes, extra_args=spec.overrides,
+                               checkpoint=checkpoint)
+        verb = "fit" if checkpoint is None else f"test --ckpt_path {trained['best_checkpoint']}"
+        columns, suffix = trained.pop("columns"), COLUMN[spec.prediction]
+        if f"stochastic{suffix}" not in columns:
+            raise ValueError(f"row {row}: predicts by '{spec.prediction}', its composition logs only "
+                             f"{sorted(columns)} (a library or mixed prediction needs {LIBRARY})")
+        val = trained.pop("val").get(f"stochastic{suffix}")
+        facts = {"composition": [repo_path(ROOT / c) for c in composition], "overrides": list(spec.overrides),
+                 "command": f"hg {verb} {' '.join(trained.pop('cli_args'))}", **trained,
+                 "accuracy": columns[f"stochastic{suffix}"],
+                 "accuracy_mean_action": columns.get(f"mean_action{suffix}"),
+                 "best_val_acc": val, "test_columns": columns}
+        if spec.scores:
+            facts["scores_checkpoint_of"] = spec.scores
+    result = {"row": row, "label": spec.label, "prediction": spec.prediction, "probes": spec.probes,
+              "definition": spec.definition(), "split": "test", "seed": seed, **facts, "parallel_jobs": jobs,
+              "commit": code_commit, "hardware": hardware()}
+    write_atomic(record_path(out, row, seed), json.dumps(result, indent=1) + "\n")
 
 
-def plan_and_test(library: tuple[str, ...], seed: int, test_episodes: int, extra: tuple[str, ...] = (),
-                  planned: str = "planner") -> dict:
-    """A planner row's run: scripts/plan.py (hg.planner) with its `library` (drawn with `seed`) on the test episodes
-    every row meets, in arm mode (`extra`: more of its arguments, e.g. --noise); the facts fit_and_test returns for
-    its result `planned`, with the script's wall time (library and planning) as the training time. Nothing is
-    learned, so there is no checkpoint and no validation score."""
+def plan_and_test(plan: tuple[str, ...], seed: int, test_episodes: int, probes: Probes) -> dict:
+    """A planner row's run: scripts/plan.py with its library and prober arguments `plan` (drawn with `seed`) on the
+    test episodes every row meets, in arm mode; the facts a trained run's record holds for its result `probes`
+    ("planner", "fixed" or "random"), with the script's wall time (library and planning) as the training time.
+    Nothing is learned, so there is no checkpoint and no validation score."""
     from hg.lightning.data import ProbeDataModule
     from hg.lightning.experiment import test_fingerprint
 
-    command = ["scripts/plan.py", *library, "--split", "test", "--episodes", str(test_episodes),
-               "--table-episodes", "--mode", "arm", "--seed", str(seed), *extra]
+    args = [*plan, "--split", "test", "--episodes", str(test_episodes), "--table-episodes", "--mode", "arm",
+            "--seed", str(seed)]
     start = time.time()
-    proc = subprocess.run([sys.executable, *command], capture_output=True, text=True, cwd=ROOT)
+    proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "plan.py"), *args], capture_output=True, text=True,
+                          cwd=ROOT)
     if proc.returncode:
-        raise RuntimeError(f"{' '.join(command)} failed (exit {proc.returncode}): {proc.stderr[-2000:]}")
-    result = json.loads(proc.stdout.strip().splitlines()[-1])[planned]
+        raise RuntimeError(f"scripts/plan.py {' '.join(args)} failed (exit {proc.returncode}): {proc.stderr[-2000:]}")
+    result = json.loads(proc.stdout.strip().splitlines()[-1])[probes]
     data = ProbeDataModule(test_episodes=test_episodes, eval_seed=EVAL_SEED)
-    return {"command": " ".join(command), "max_steps": 0, "resumed_from_step": 0, "accuracy": result["accuracy"],
-            "accuracy_mean_action": None, "best_val_acc": None, "best_checkpoint": None,
-            "train_wall_s": round(time.time() - start, 1), "test_wall_s": 0.0, "test_episodes": test_episodes,
-            "test_fingerprint": test_fingerprint(data), "torch_threads": 1}
+    return {"plan_args": args, "command": f"scripts/plan.py {' '.join(args)}", "max_steps": 0, "resumed_from_step": 0,
+            "accuracy": result["accuracy"], "accuracy_mean_action": None, "best_val_acc": None,
+            "best_checkpoint": None, "train_wall_s": round(time.time() - start, 1), "test_wall_s": 0.0,
+            "test_episodes": test_episodes, "test_fingerprint": test_fingerprint(data), "torch_threads": 1}
 
 
-# -- merge ------------------------------------------------------------------------------------------------
-def load_runs(out_dir: Path) -> dict[str, list[dict]]:
+# -- records ------------------------------------------------------------------------------------------------
+def read_record(path: Path) -> dict:
+    try:
+        record = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not a run record of this script ({exc})") from exc
+    if not isinstance(record, dict) or "row" not in record or "seed" not in record:
+        raise ValueError(f"{path}: not a run record of this script (no row or seed)")
+    return record
+
+
+def check_definition(path: Path, record: dict, composition: list[str] | None = None) -> None:
+    """Refuses a record the row's current definition (and, when given, the composition this run asks) would not
+    make: taking it for this row's run would put another model's numbers under its name."""
+    spec = ROWS[record["row"]]
+    if record.get("definition") != spec.definition():
+        raise ValueError(f"{path}: made by another definition of row {record['row']} ({record.get('definition')}; now "
+                         f"{spec.definition()}); move it away to run this one")
+    if composition is not None and not spec.plan and record.get("composition") != composition:
+        raise ValueError(f"{path}: made with {record.get('composition')}, this run asks {composition}; move it away "
+                         "(or --out elsewhere) to run this one")
+
+
+def load_runs(out: Path) -> dict[str, list[dict]]:
+    """The records of the rows defined here, by row in ROWS' order and by seed; every one must have met the same test
+    episodes and match its row's definition."""
     runs: dict[str, list[dict]] = {}
-    for path in sorted((out_dir / "runs").glob("*.json")):
-        try:
-            run = json.loads(path.read_text())
-            runs.setdefault(run["row"], []).append(run)
-        except (json.JSONDecodeError, KeyError) as exc:
-            raise ValueError(f"{path}: not a run result of this script ({exc})") from exc
+    for path in sorted((out / RUNS).glob("*.json")):
+        record = read_record(path)
+        if record["row"] not in ROWS:
+            raise ValueError(f"{path}: row {record['row']!r} is not defined in scripts/reproduce_table1.py")
+        check_definition(path, record)
+        if record.get("split") != "test":
+            raise ValueError(f"{path}: scored the {record.get('split')} split; the table holds test scores only")
+        runs.setdefault(record["row"], []).append(record)
     fingerprints = {(r["test_episodes"], r["test_fingerprint"]) for rs in runs.values() for r in rs}
     if len(fingerprints) > 1:
-        raise ValueError(f"{out_dir / 'runs'}: runs were scored on different test episodes ({sorted(fingerprints)})")
+        raise ValueError(f"{out / RUNS}: runs were scored on different test episodes ({sorted(fingerprints)})")
     return {row: sorted(runs[row], key=lambda r: r["seed"]) for row in ROWS if row in runs}
 
 
+def mean_std(values: list[list[float]]) -> tuple[list[float], list[float]]:
+    """Mean and std (over seeds, ddof=1; 0 for one seed) of the accuracy after each probe."""
+    array = np.array(values)
+    std = array.std(0, ddof=1) if len(values) > 1 else np.zeros(array.shape[1])
+    return array.mean(0).round(4).tolist(), std.round(4).tolist()
+
+
 def summarise(runs: dict[str, list[dict]]) -> dict[str, dict]:
-    """Mean and std (over seeds, ddof=1; 0 for one seed) of the accuracy after each probe, per row."""
+    """Per row: what it is, its seeds, the mean and std of its accuracy after each probe, and how many times its runs
+    read the test split (`test_reads`: its records that scored test, one read each)."""
     table = {}
     for row, rs in runs.items():
-        # a planner row names its whole command (the library's arguments), a trained row its config
-        entry = {"label": ROWS[row].label, "config": rs[0].get("command", config_of(row)), "seeds": [r["seed"] for r in rs]}
-        for key in ("accuracy", "accuracy_mean_action", "accuracy_namer_alone"):  # the last: a row with a namer
+        spec = ROWS[row]
+        entry = {"label": spec.label, "prediction": spec.prediction, "probes": spec.probes,
+                 "composition": list(spec.configs) or None, "overrides": list(spec.overrides),
+                 "command": rs[0]["command"], "seeds": [r["seed"] for r in rs],
+                 "test_reads": sum(r.get("split") == "test" for r in rs)}
+        for key in ("accuracy", "accuracy_mean_action"):
             if all(r.get(key) is not None for r in rs):
-                values = np.array([r[key] for r in rs])
-                std = values.std(0, ddof=1) if len(rs) > 1 else np.zeros(values.shape[1])
-                entry[key], entry[f"{key}_std"] = values.mean(0).round(4).tolist(), std.round(4).tolist()
+                entry[key], entry[f"{key}_std"] = mean_std([r[key] for r in rs])
         if all(r.get("best_val_acc") is not None for r in rs):
             entry["best_val_acc"] = round(float(np.mean([r["best_val_acc"] for r in rs])), 4)
         entry["train_wall_s"] = [r["train_wall_s"] for r in rs]
+        entry["parallel_jobs"] = sorted({r["parallel_jobs"] for r in rs})
         entry["commits"] = sorted({r["commit"] for r in rs})
         entry["hardware"] = sorted({r["hardware"] for r in rs})
         table[row] = entry
     return table
 
 
-def best_pcrn(table: dict[str, dict]) -> str | None:
-    """The learned PCRN row with the highest mean validation accuracy after 10 probes: chosen on val, never on
-    the test episodes the table reports, and among the rows that have all their seeds when any has (one lucky
-    seed must not outrank a mean over three)."""
-    pcrn = [row for row in table if ROWS[row].learned and ROWS[row].encoder == "pcrn"]
-    complete = [row for row in pcrn if len(table[row]["seeds"]) >= len(SEEDS)]
-    return max(complete or pcrn, key=lambda row: table[row].get("best_val_acc", -1.0)) if pcrn else None
+def best_variant(table: dict[str, dict], prediction: Prediction | None = None) -> str | None:
+    """The PCRN row with a learned policy (of that prediction, if given) with the highest mean validation accuracy
+    after the last probe: chosen on val, never on the test episodes the table reports, and among the rows that have
+    all their seeds when any has (one lucky seed must not outrank a mean over three)."""
+    rows = [row for row in table if ROWS[row].probes == "learned" and encoder_of(row) == "hg.nets.PCRN"
+            and (prediction is None or ROWS[row].prediction == prediction)]
+    complete = [row for row in rows if len(table[row]["seeds"]) >= len(SEEDS)]
+    return max(complete or rows, key=lambda row: table[row].get("best_val_acc", -1.0)) if rows else None
 
 
 def targets(table: dict[str, dict]) -> list[str]:
     """The issue's targets, each as a line saying met / not met and by how much."""
-    lines = []
-    best = best_pcrn(table)
-    if best:
-        acc = table[best]["accuracy"]
-        paper_best = {k: max(col[k] for col in PAPER.values()) for k in range(2, 11)}
-        among = f" among the rows with all {len(SEEDS)} seeds" if len(table[best]["seeds"]) >= len(SEEDS) else ""
-        lines.append(f"- Best PCRN variant (highest mean validation accuracy after 10 probes{among}, "
-                     f"{table[best].get('best_val_acc', float('nan')):.3f}): {table[best]['label']}.")
-        for k, goal in ((10, 0.95), (5, 0.85)):
+    best = best_variant(table)
+    if best is None:
+        return ["- No PCRN row with a learned policy yet: no target read."]
+    acc, n = table[best]["accuracy"], len(table[best]["accuracy"])
+    among = f" among the rows with all {len(SEEDS)} seeds" if len(table[best]["seeds"]) >= len(SEEDS) else ""
+    lines = [f"- Best PCRN variant (highest mean validation accuracy after {n} probes{among}, "
+             f"{table[best].get('best_val_acc', float('nan')):.3f}): {table[best]['label']} (predicted by "
+             f"{table[best]['prediction']})."]
+    for k, goal in ((10, 0.95), (5, 0.85)):
+        if k <= n:
             lines.append(f"- After {k} probes >= {goal}: {'met' if acc[k - 1] >= goal else 'not met'} "
                          f"({acc[k - 1]:.3f}, {acc[k - 1] - goal:+.3f}).")
-        short = {k: acc[k - 1] - paper_best[k] for k in paper_best if acc[k - 1] < paper_best[k]}
-        lines.append("- At every probe count at least the paper's best entry: " + (
-            "met." if not short else "not met at " + ", ".join(f"{k} probes ({d:+.3f})" for k, d in short.items()) + "."))
-        for other in (row for row in table if not ROWS[row].learned and not ROWS[row].planner):  # same classifier
-            gap = acc[-1] - table[other]["accuracy"][-1]
-            lines.append(f"- Beats {table[other]['label']} by >= 0.15 after 10 probes: "
-                         f"{'met' if gap >= 0.15 else 'not met'} ({gap:+.3f}).")
-        for other in (row for row in table if ROWS[row].namer_of):  # the same namer reading probes placed by no one
-            label, namer_of = table[other]["label"], ROWS[other].namer_of
-            if namer_of != best or "accuracy_namer_alone" not in table[best]:
-                lines.append(f"- Beats {label} by >= 0.15 after 10 probes: not compared (named by the namer of "
-                             f"{namer_of}, not the best variant's).")
-                continue
-            alone = table[best]["accuracy_namer_alone"][-1]
-            gap = alone - table[other]["accuracy"][-1]
-            lines.append(f"- Beats {label} by >= 0.15 after 10 probes, the same namer alone reading both: "
-                         f"{'met' if gap >= 0.15 else 'not met'} ({gap:+.3f}; the best variant's namer alone "
-                         f"{alone:.3f}, with its classifier {acc[-1]:.3f}).")
-        if "lstm" in table:
-            lost = [k for k in range(3, 11) if acc[k - 1] <= table["lstm"]["accuracy"][k - 1]]
-            lines.append("- Beats the LSTM at every probe count from 3 on: " + (
-                "met." if not lost else f"not met at {lost}."))
+    paper_best = {k: max(col[k] for col in PAPER.values()) for k in range(2, n + 1) if k <= 10}
+    short = {k: acc[k - 1] - paper_best[k] for k in paper_best if acc[k - 1] < paper_best[k]}
+    lines.append("- At every probe count at least the paper's best entry: " + (
+        "met." if not short else "not met at " + ", ".join(f"{k} probes ({d:+.3f})" for k, d in short.items()) + "."))
+    for other in (row for row in table if ROWS[row].probes in ("fixed", "random")):  # probes placed by no one
+        prediction = ROWS[other].prediction
+        mine = best_variant(table, prediction)
+        label = table[other]["label"]
+        if mine is None or len(table[mine]["accuracy"]) != len(table[other]["accuracy"]):
+            lines.append(f"- Beats {label} by >= 0.15 after its last probe: not compared (no learned policy's row "
+                         f"predicted by '{prediction}' over as many probes).")
+            continue
+        gap = table[mine]["accuracy"][-1] - table[other]["accuracy"][-1]
+        lines.append(f"- Beats {label} by >= 0.15 after its last probe, the same classifier ('{prediction}') reading "
+                     f"both: {'met' if gap >= 0.15 else 'not met'} ({gap:+.3f}, {table[mine]['label']}).")
+    if "lstm" in table and len(table["lstm"]["accuracy"]) == n:
+        lost = [k for k in range(3, n + 1) if acc[k - 1] <= table["lstm"]["accuracy"][k - 1]]
+        lines.append("- Beats the LSTM at every probe count from 3 on: " + ("met." if not lost else f"not met at {lost}."))
     return lines
 
 
-def summary(table: dict[str, dict]) -> list[str]:
-    """One line per row, for reading the rows against each other: the full per-probe tables follow it."""
-    paper = {ROWS[r].paper: PAPER[ROWS[r].paper][10] for r in table if ROWS[r].paper}
-
-    def cell(entry: dict, key: str, k: int) -> str:
-        if key not in entry:
-            return ""
-        mean, std = entry[key][k - 1], entry[f"{key}_std"][k - 1]
-        return f"{mean:.3f}" if len(entry["seeds"]) == 1 else f"{mean:.3f} +- {std:.3f}"
-
-    lines = ["| row | seeds | after 1 | after 3 | after 5 | after 10 | after 10, mean action | validation, after 10 "
-             "| paper, after 10 |", "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
-    for r, entry in table.items():
-        val = entry.get("best_val_acc")
-        lines.append(f"| {entry['label']} | {len(entry['seeds'])} | " + " | ".join(
-            cell(entry, "accuracy", k) for k in (1, 3, 5)) + f" | **{cell(entry, 'accuracy', 10)}** | "
-            f"{cell(entry, 'accuracy_mean_action', 10)} | {'' if val is None else f'{val:.3f}'} | "
-            f"{paper.get(ROWS[r].paper, '')} |")
-    return lines
+def cell(entry: dict, key: str, k: int) -> str:
+    """Mean +- std after probe k over the seeds (the mean alone for one seed); empty where not measured."""
+    if key not in entry or k > len(entry[key]):
+        return ""
+    mean, std = entry[key][k - 1], entry[f"{key}_std"][k - 1]
+    return f"{mean:.3f}" if len(entry["seeds"]) == 1 else f"{mean:.3f} +- {std:.3f}"
 
 
-def markdown(table: dict[str, dict], runs: dict[str, list[dict]], merged_at: str) -> str:
-    n = len(next(iter(table.values()))["accuracy"])
-    rows, first = list(table), next(iter(runs.values()))[0]
+def markdown(table: dict[str, dict], merged_at: str, test_episodes: int) -> str:
+    rows = list(table)
+    n = max(len(t["accuracy"]) for t in table.values())
+    paper = {r: PAPER[ROWS[r].paper][10] for r in rows if ROWS[r].paper}
     lines = ["# Table 1, reproduced and compared",
              "",
-             f"Accuracy after each probe on the same {first['test_episodes']} held-out test episodes (pose regions never used in "
-             "training), single stochastic rollout, mean +- std over training seeds; each model is the checkpoint "
-             "best on the validation episodes (a third, separate pose region). The paper's figures (Riou et al., "
-             "ICASSP 2021, Table 1) stand beside ours in the `paper` columns; they come from the authors' own "
-             "simulator, so they are a yardstick, not the same experiment.",
+             f"Accuracy after each probe on the same {test_episodes} held-out test episodes (pose regions never used in "
+             "training), single stochastic rollout, mean +- std over training seeds; each learned model is the "
+             "checkpoint best on the validation episodes (a third, separate pose region). Each row says what predicts "
+             "the class (`learned` heads, the `library` classifier, or both summed: `mixed`) and what chooses the "
+             "probes (a `learned` policy, a `fixed` scan, `random` probes, the greedy `planner`). The paper's figures "
+             "(Riou et al., ICASSP 2021, Table 1) come from the authors' own simulator: a yardstick, not the same "
+             "experiment.",
              "",
-             "Produced by `.venv/bin/python scripts/reproduce_table1.py` (paper protocol: 8000 steps, batch 64, "
-             "10 probes, arm mode, hg4; the configs are named below). Merged at commit "
-             f"`{merged_at}`; each row's runs were made at the commits listed with it.",
+             "Produced by `.venv/bin/python scripts/reproduce_table1.py --merge-only` (paper protocol: 8000 steps, "
+             "batch 64, 10 probes, arm mode, hg4; each row's composition is named below). Merged at commit "
+             f"`{merged_at}`; each row's runs were made at the commits listed with it. `test reads`: how many times "
+             "the row's runs read the test split (each run once). The rows of the hg4 research are in "
+             "`docs/ablations.md`.",
              "",
-             "In short (the tables after each probe follow; chance is 0.25):",
-             "",
-             *summary(table),
-             "",
-             "## After each probe",
-             "",
-             "| probes | " + " | ".join(table[r]["label"] for r in rows) + " | " + " | ".join(
-                 f"paper {c}" for c in PAPER) + " |",
-             "|---:|" + "---:|" * (len(rows) + len(PAPER))]
-    for k in range(n):
-        cells = [f"{table[r]['accuracy'][k]:.3f} +- {table[r]['accuracy_std'][k]:.3f}" for r in rows]
-        cells += [f"{PAPER[c][k + 1]:.3f}" if k + 1 in PAPER[c] else "" for c in PAPER]
-        lines.append(f"| {k + 1} | " + " | ".join(cells) + " |")
-    lines += ["", "![accuracy after each probe](table1.png)", "",
-              "Learned policies, mean-action rollout (the Gaussian's mean instead of a sample), same episodes:", "",
-              "| probes | " + " | ".join(table[r]["label"] for r in rows if "accuracy_mean_action" in table[r]) + " |",
-              "|---:|" + "---:|" * sum("accuracy_mean_action" in table[r] for r in rows)]
-    for k in range(n):
-        lines.append(f"| {k + 1} | " + " | ".join(
-            f"{table[r]['accuracy_mean_action'][k]:.3f} +- {table[r]['accuracy_mean_action_std'][k]:.3f}"
-            for r in rows if "accuracy_mean_action" in table[r]) + " |")
-    lines += ["", "## Runs", "",
-              "| row | config | seeds | training wall time per seed (s) | jobs in parallel | commits | hardware |",
-              "|---|---|---|---|---|---|---|"]
+             "| row | predicts | probes | seeds | " + " | ".join(f"after {k}" for k in SHOWN) +
+             " | mean action, after 10 | validation, after the last | paper, after 10 | test reads |",
+             "|---|---|---|---|" + "---:|" * (len(SHOWN) + 4)]
+    for r, entry in table.items():
+        val = entry.get("best_val_acc")
+        lines.append(f"| {entry['label']} | {entry['prediction']} | {entry['probes']} | {len(entry['seeds'])} | "
+                     + " | ".join(cell(entry, "accuracy", k) for k in SHOWN)
+                     + f" | {cell(entry, 'accuracy_mean_action', 10)} | {'' if val is None else f'{val:.3f}'} | "
+                       f"{paper.get(r, '')} | {entry['test_reads']} |")
+    lines += ["", "## After each probe", "",
+              "| probes | " + " | ".join(table[r]["label"] for r in rows) + " | " + " | ".join(
+                  f"paper {c}" for c in PAPER) + " |",
+              "|---:|" + "---:|" * (len(rows) + len(PAPER))]
+    for k in range(1, n + 1):
+        lines.append(f"| {k} | " + " | ".join([cell(table[r], "accuracy", k) for r in rows] + [
+            f"{PAPER[c][k]:.3f}" if k in PAPER[c] else "" for c in PAPER]) + " |")
+    mean_action = [r for r in rows if "accuracy_mean_action" in table[r]]
+    lines += ["", "![accuracy after each probe](table1.png)", ""]
+    if mean_action:
+        lines += ["Learned policies, mean-action rollout (the policy's most likely request instead of a sample), same "
+                  "episodes:", "",
+                  "| probes | " + " | ".join(table[r]["label"] for r in mean_action) + " |",
+                  "|---:|" + "---:|" * len(mean_action)]
+        for k in range(1, n + 1):
+            lines.append(f"| {k} | " + " | ".join(cell(table[r], "accuracy_mean_action", k) for r in mean_action)
+                         + " |")
+        lines.append("")
+    lines += ["## Runs", "",
+              "| row | composition or command | seeds | training wall time per seed (s) | jobs in parallel | commits | "
+              "hardware | test reads |", "|---|---|---|---|---|---|---|---:|"]
     for r in rows:
-        jobs = sorted({run["parallel_jobs"] for run in runs[r]})
-        lines.append(f"| {table[r]['label']} | `{table[r]['config']}` | {table[r]['seeds']} | "
-                     f"{', '.join(f'{s:.0f}' for s in table[r]['train_wall_s'])} | {jobs} | "
-                     f"{', '.join(f'`{c}`' for c in table[r]['commits'])} | "
-                     f"{'; '.join(table[r]['hardware'])} |")
-    lines += ["", "With two jobs in parallel each trains on one torch thread.",
-              "A run resumed after an interruption counts every attempt's training time up to its last checkpoint "
-              "(`hg.lightning.callbacks.TrainingClock`, in the checkpoints since 2026-12-05); one resumed before "
-              "that counts only its last attempt (`resumed_from_step` in its JSON).",
+        entry = table[r]
+        made = (" + ".join(f"`{c}`" for c in entry["composition"]) + "".join(f" `{o}`" for o in entry["overrides"])
+                if entry["composition"] else f"`{entry['command']}`")
+        lines.append(f"| {entry['label']} | {made} | {entry['seeds']} | "
+                     f"{', '.join(f'{s:.0f}' for s in entry['train_wall_s'])} | {entry['parallel_jobs']} | "
+                     f"{', '.join(f'`{c}`' for c in entry['commits'])} | {'; '.join(entry['hardware'])} | "
+                     f"{entry['test_reads']} |")
+    lines += ["", "With two jobs in parallel each trains on one torch thread. A run resumed after an interruption "
+              "counts every attempt's training time up to its last checkpoint (`hg.lightning.callbacks.TrainingClock`).",
               "", "## Targets (issue #4)", "", *targets(table), ""]
     return "\n".join(lines)
 
 
-def merge(out_dir: Path) -> dict:
-    from hg.lightning.callbacks import accuracy_plot
-
-    runs = load_runs(out_dir)
-    if not runs:
-        raise SystemExit(f"{out_dir / 'runs'}: no finished runs to merge")
-    table = summarise(runs)
+def merge(out: Path, write: bool = True) -> dict:
+    """The table of the rows defined here from their records: written to <out>/table1.{json,md,png} when `write`
+    and there is any record (else the files are left as they are). Returns each row's mean accuracy."""
+    runs = load_runs(out)
     merged_at = commit(paths=())
-    write_atomic(out_dir / "table1.json", json.dumps({"commit": merged_at,
-                                                      "test_episodes": next(iter(runs.values()))[0]["test_episodes"],
-                                                      "test_fingerprint": next(iter(runs.values()))[0]["test_fingerprint"],
-                                                      "best_pcrn": best_pcrn(table), "rows": table, "paper": PAPER},
-                                                     indent=1) + "\n")
-    write_atomic(out_dir / "table1.md", markdown(table, runs, merged_at))
-    write_atomic(out_dir / "table1.png", accuracy_plot(
-        {f"{t['label']} (n={len(t['seeds'])})": t["accuracy"] for t in table.values()},
-        reference={f"paper {c}": col for c, col in PAPER.items()}))
+    if not runs:
+        return {"commit": merged_at}
+    table = summarise(runs)
+    if write:
+        from hg.lightning.callbacks import accuracy_plot
+
+        first = next(iter(runs.values()))[0]
+        write_atomic(out / "table1.json", json.dumps({
+            "commit": merged_at, "test_episodes": first["test_episodes"], "test_fingerprint": first["test_fingerprint"],
+            "best_variant": best_variant(table), "rows": table, "paper": PAPER}, indent=1) + "\n")
+        write_atomic(out / "table1.md", markdown(table, merged_at, first["test_episodes"]))
+        write_atomic(out / "table1.png", accuracy_plot(
+            {f"{t['label']} (n={len(t['seeds'])})": t["accuracy"] for t in table.values()},
+            reference={f"paper {c}": col for c, col in PAPER.items()}))
     return {"commit": merged_at, **{row: t["accuracy"] for row, t in table.items()}}
 
 
+# -- the hg4 rows: docs/ablations.md ------------------------------------------------------------------------
+def predicted_by(record: dict) -> str:
+    """What predicted an hg4 record's `accuracy`: the planner's Bayes classifier for a planner row, the learned heads
+    and the library classifier (then "library namer") summed for a row that had one (its name says so, and its later
+    records also hold the namer alone), else the learned heads."""
+    if str(record.get("config", "")).startswith("scripts/"):
+        return "library"
+    return "mixed" if "accuracy_namer_alone" in record or "library_namer" in record["row"] else "learned"
+
+
+def ablations(out: Path) -> str:
+    """The ablations page: every row of the hg4 records (<out>/runs) that no row defined here replaces, with its
+    accuracy after 2, 5 and 10 probes as recorded, its config and how to run it again. A pure function of the
+    records and ROWS (no date, no commit of its own), so that writing it twice gives the same file."""
+    runs: dict[str, list[dict]] = {}
+    for path in sorted((out / OLD_RUNS).glob("*.json")):
+        record = read_record(path)
+        runs.setdefault(record["row"], []).append(record)
+    replaced = {spec.was: name for name, spec in ROWS.items() if spec.was}
+    reads = sum(len(rs) for rs in runs.values())
+
+    def recorded(rs: list[dict]) -> list[str]:
+        entry = {"seeds": [r["seed"] for r in rs]}
+        entry["accuracy"], entry["accuracy_std"] = mean_std([r["accuracy"] for r in rs])
+        return [cell(entry, "accuracy", k) for k in SHOWN]
+
+    lines = ["# Ablations of the hg4 research", "",
+             "Generated by `.venv/bin/python scripts/reproduce_table1.py --ablations` (also written by `--merge-only`) "
+             f"from the run records in `{repo_path(out / OLD_RUNS)}/`; do not edit it by hand.", "",
+             "These rows were trained and scored on the old protocol, before the components refactor (42a3851), on "
+             "Table 1's 2048 test episodes of hg4. The project's audit found that those figures are no clean held-out "
+             "estimate (the \"unseen heading\" cells copy training poses, the planner's library reaches the test "
+             "cells, the test split steered the design, the best variant's last points come from the library "
+             "classifier): read the caveats in [archive/README.md](archive/README.md) before quoting any, and "
+             "[findings.md](findings.md) for what each line of work established. Their records read the test split "
+             f"{reads} times in all, one read per record.", "",
+             f"Their configs were deleted at 42a3851; `{LAST_OLD_CONFIGS}` is the last commit with them. To run a row "
+             f"again: `git checkout {LAST_OLD_CONFIGS} && .venv/bin/python scripts/reproduce_table1.py --rows <old row> "
+             "--seeds N --out /tmp/hg4` (another `--out`: in `docs/results` the committed records would count as "
+             "done; a row that scores another row's checkpoints needs that row's run first, in the same `--out`).", "",
+             "`predicts`: what made the recorded figure, as Table 1 now names it (`learned` heads, the `library` "
+             "classifier, or both summed: `mixed`, the old `acc` of a row with a library namer). Accuracy: mean +- std "
+             "over the seeds, single stochastic rollout, as recorded.", "",
+             "| old row | what it is | predicts | seeds | after 2 | after 5 | after 10 | config (as recorded) | made at "
+             "| run again (at " + f"`{LAST_OLD_CONFIGS}`) |", "|---|---|---|---|---:|---:|---:|---|---|---|"]
+    for row in sorted(r for r in runs if r not in replaced):
+        rs = sorted(runs[row], key=lambda r: r["seed"])
+        seeds = [r["seed"] for r in rs]
+        config = rs[0].get("command") or rs[0]["config"]
+        source = rs[0].get("scores_checkpoint_of")
+        again = f"`--rows {row} --seeds {' '.join(map(str, seeds))}`" + (f" (after `{source}`)" if source else "")
+        lines.append(f"| `{row}` | {rs[0]['label']} | {predicted_by(rs[0])} | {', '.join(map(str, seeds))} | "
+                     + " | ".join(recorded(rs))
+                     + f" | `{config}` | {', '.join(f'`{c}`' for c in sorted({r['commit'] for r in rs}))} | {again} |")
+    lines += ["", "## The hg4 rows that Table 1's rows replace", "",
+              "Run again under their new names by `scripts/reproduce_table1.py --rows <row>` at the current commit; "
+              "`tests/test_golden.py` checks that four of the compositions give the numbers their old configs gave. "
+              "Their recorded figures (old protocol, as above) are those of `docs/results/table1.md` until it is "
+              "merged from the new runs.", "",
+              "| old row | predicts | seeds | after 2 | after 5 | after 10 | row now | composition or command now |",
+              "|---|---|---|---:|---:|---:|---|---|"]
+    for old in sorted(r for r in runs if r in replaced):
+        rs = sorted(runs[old], key=lambda r: r["seed"])
+        spec = ROWS[replaced[old]]
+        now = sorted(name for name, s in ROWS.items() if s.was == old)  # one old row, two predictions now
+        made = " + ".join(f"`{c}`" for c in spec.configs) or f"`scripts/plan.py {' '.join(spec.plan)}`"
+        lines.append(f"| `{old}` | {predicted_by(rs[0])} | {', '.join(str(r['seed']) for r in rs)} | "
+                     + " | ".join(recorded(rs)) + f" | {', '.join(f'`{o}`' for o in now)} | {made} |")
+    return "\n".join(lines) + "\n"
+
+
 # -- driver -----------------------------------------------------------------------------------------------
+def run_children(todo: list[tuple[str, int]], args: argparse.Namespace) -> int:
+    """Each (row, seed) of `todo` in a child process, `args.jobs` at once, the rows that score other rows'
+    checkpoints after those rows. SIGTERM stops the running children and starts no more. Returns how many runs did
+    not write their record."""
+    threads = args.threads or max(1, (os.cpu_count() or 1) // args.jobs)
+    children: set[subprocess.Popen] = set()
+    lock, stopping = threading.Lock(), threading.Event()
+
+    def stop(signum: int, frame) -> None:
+        stopping.set()
+        with lock:
+            for child in children:
+                child.send_signal(signal.SIGTERM)
+
+    def launch(job: tuple[str, int]) -> bool:
+        row, seed = job
+        name, done = run_name(row, seed), record_path(args.out, row, seed)
+        log = args.runs_dir / name / "log.txt"
+        log.parent.mkdir(parents=True, exist_ok=True)
+        command = [sys.executable, __file__, "--one", row, str(seed), "--out", str(args.out), "--runs-dir",
+                   str(args.runs_dir), "--jobs", str(args.jobs), "--test-episodes", str(args.test_episodes),
+                   *(a for c in args.add_config for a in ("--add-config", c))]
+        env = {**os.environ, "OMP_NUM_THREADS": str(threads), "WANDB_MODE": os.environ.get("WANDB_MODE", "offline")}
+        start = time.time()
+        with open(log, "a") as stream, lock:
+            if stopping.is_set():
+                print(f"{name}: not started (stopping)", flush=True)
+                return False
+            child = subprocess.Popen(command, stdout=stream, stderr=subprocess.STDOUT, env=env, cwd=ROOT)
+            children.add(child)
+        code = child.wait()
+        with lock:
+            children.discard(child)
+        # a child stopped by SIGTERM leaves Lightning's fit with exit 0 and no record: not done
+        written = done.is_file()
+        state = ("done" if written else f"stopped before writing its record, see {log}") if code == 0 else \
+            f"FAILED (exit {code}), see {log}"
+        print(f"{name}: {state} in {time.time() - start:.0f} s", flush=True)
+        return written and code == 0
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        failed = 0
+        for scoring in (False, True):
+            with ThreadPoolExecutor(max(1, args.jobs)) as pool:
+                failed += sum(not ok for ok in pool.map(launch, [t for t in todo if bool(ROWS[t[0]].scores) == scoring]))
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    if stopping.is_set():
+        raise SystemExit(f"reproduce_table1: stopped by SIGTERM; {failed} runs unfinished (they resume next time)")
+    return failed
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS))
     parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
-    parser.add_argument("--jobs", type=int, default=1,
-                        help="runs trained at once")
+    parser.add_argument("--jobs", type=int, default=1, help="runs trained at once")
     parser.add_argument("--threads", type=int, default=None,
                         help="torch threads per run (default: cores / jobs); beside other work on the machine use 1, "
-                             "since a run on 2 threads sharing a core with another process crawls (0.25 steps/s against 5.8 "
-                             "on 1 thread, measured)")
-    parser.add_argument("--steps", type=int, default=None, help="override max_steps (smoke tests only)")
+                             "since a run on 2 threads sharing a core with another process crawls (0.25 steps/s "
+                             "against 5.8 on 1 thread, measured)")
+    parser.add_argument("--add-config", action="append", default=[], metavar="FILE",
+                        help="a config added after each trained row's composition (smoke tests: "
+                             "configs/parts/tiny.yaml); recorded in the run's composition")
     parser.add_argument("--test-episodes", type=int, default=TEST_EPISODES, help="test set size (smoke tests only)")
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
     parser.add_argument("--runs-dir", type=Path, default=ROOT / "runs" / "table1", help="checkpoints and wandb runs")
-    parser.add_argument("--merge-only", action="store_true")
+    parser.add_argument("--merge-only", action="store_true",
+                        help="train nothing: write table1.* from the records (when there are any) and the ablations "
+                             "page")
+    parser.add_argument("--ablations", action="store_true", help="write only the ablations page (docs/ablations.md, "
+                                                                 "beside --out) from the hg4 records in <out>/runs")
     parser.add_argument("--one", nargs=2, metavar=("ROW", "SEED"), help=argparse.SUPPRESS)  # the child's job
     args = parser.parse_args()
     if args.threads is not None and args.threads < 1:
         parser.error(f"--threads {args.threads}: must be >= 1")
+    if args.jobs < 1:
+        parser.error(f"--jobs {args.jobs}: must be >= 1")
+    for config in args.add_config:
+        if not Path(config).is_file():
+            parser.error(f"--add-config {config}: file not found")
+    add_configs = tuple(repo_path(c) for c in args.add_config)
     if args.one:
-        train_and_test(args.one[0], int(args.one[1]), args.runs_dir, args.out, args.steps, args.jobs, args.test_episodes)
+        train_and_test(args.one[0], int(args.one[1]), args.runs_dir, args.out, args.jobs, args.test_episodes,
+                       add_configs)
         return
-    if not args.merge_only:
-        todo = [(row, seed) for seed in args.seeds for row in args.rows  # seed-major: every row gets a seed early
-                if not (args.out / "runs" / f"{run_name(row, seed)}.json").is_file()]
+    if args.ablations or args.merge_only:
+        write_atomic(args.out.parent / "ablations.md", ablations(args.out))
+        print(f"written: {args.out.parent / 'ablations.md'}", flush=True)
+        if args.ablations:
+            return
+    else:
+        todo = []
+        for seed in args.seeds:  # seed-major: every row gets a seed early
+            for row in args.rows:
+                path = record_path(args.out, row, seed)
+                if path.is_file():  # done, if by this very row and composition
+                    check_definition(path, read_record(path), None if ROWS[row].plan else [
+                        *ROWS[row].configs, *add_configs])
+                else:
+                    todo.append((row, seed))
         print(f"{len(todo)} runs to train: {', '.join(run_name(*t) for t in todo) or 'none'}", flush=True)
-        threads = args.threads or max(1, (os.cpu_count() or 1) // args.jobs)
-
-        def launch(job: tuple[str, int]) -> int:
-            row, seed = job
-            log = args.runs_dir / run_name(row, seed) / "log.txt"
-            log.parent.mkdir(parents=True, exist_ok=True)
-            command = [sys.executable, __file__, "--one", row, str(seed), "--out", str(args.out),
-                       "--runs-dir", str(args.runs_dir), "--jobs", str(args.jobs), "--test-episodes", str(args.test_episodes)]
-            command += ["--steps", str(args.steps)] if args.steps is not None else []
-            env = {**os.environ, "OMP_NUM_THREADS": str(threads), "WANDB_MODE": os.environ.get("WANDB_MODE", "offline")}
-            start = time.time()
-            with open(log, "a") as stream:
-                code = subprocess.run(command, stdout=stream, stderr=subprocess.STDOUT, env=env, cwd=ROOT).returncode
-            # a child stopped by SIGTERM leaves Lightning's fit with exit 0 and no result: not done
-            written = (args.out / "runs" / f"{run_name(row, seed)}.json").is_file()
-            state = ("done" if written else f"stopped before writing its result, see {log}") if code == 0 else \
-                f"FAILED (exit {code}), see {log}"
-            print(f"{run_name(row, seed)}: {state} in {time.time() - start:.0f} s", flush=True)
-            return code if code or written else 1
-
-        failed = 0
-        for scoring in (False, True):  # the rows that score other rows' checkpoints after those rows
-            with ThreadPoolExecutor(max(1, args.jobs)) as pool:
-                failed += sum(code != 0 for code in pool.map(launch, [t for t in todo
-                                                                       if bool(ROWS[t[0]].scores) == scoring]))
-        if failed:
-            print(f"{failed} runs failed; merging the finished ones", flush=True)
-    print(json.dumps(merge(args.out)))
+        failed = run_children(todo, args)
+        print(f"{failed} runs failed; " if failed else "", "table1.* are written by --merge-only", sep="", flush=True)
+    summary = merge(args.out, write=args.merge_only)
+    if args.merge_only and len(summary) == 1:
+        print(f"{args.out / RUNS}: no record of the rows defined here yet; table1.* left as they are", flush=True)
+    print(json.dumps(summary))
+    if not args.merge_only and failed:
+        sys.exit(1)
 
 
 if __name__ == "__main__":
