@@ -61,7 +61,7 @@ class LibraryRecipe:
     and `mismatch`, the weight kept by a touch read as a miss or back (hg.planner.log_likelihood)."""
 
     size: int = 262144
-    split: str = "val"
+    split: str = "train"  # held-out poses enter a library only when asked for (scripts/plan.py --library-split)
     shifts: int = 0
     mirror: bool = False
     seed: int = 0
