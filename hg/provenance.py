@@ -7,7 +7,9 @@ import subprocess
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-RESULT_PATHS = ("hg", "configs", "urdf")  # the files that decide a training or evaluation result
+# the files that decide a training or evaluation result: the code, the configs, the robots, the teacher files a policy
+# copies, and the scripts (a planner row's numbers are scripts/plan.py's, a row's composition is in reproduce_table1.py)
+RESULT_PATHS = ("hg", "configs", "urdf", "data", "scripts")
 
 
 def commit(paths: tuple[str, ...] = RESULT_PATHS) -> str:

@@ -375,7 +375,7 @@ def noise_markdown(summary: dict, merged_at: str) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--models", nargs="+", default=["pointnet", "dgcnn", "ours"],
                         choices=["pointnet", "dgcnn", "ours", "ours_trained", "planner"])
     parser.add_argument("--trained-row", default=OURS,
