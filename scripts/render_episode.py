@@ -16,7 +16,6 @@ import json
 import sys
 from pathlib import Path
 
-import torch
 
 from hg.lightning.cli import datamodule_from_checkpoint
 from hg.lightning.module import HapticGlance
@@ -42,10 +41,7 @@ def main(argv: list[str]) -> list[Path]:
     if not args.ckpt.is_file():
         raise FileNotFoundError(f"--ckpt {args.ckpt}: file not found")
 
-    saved = torch.load(args.ckpt, map_location="cpu", weights_only=False)["hyper_parameters"]
-    parts = {k: v for k, v in saved.items() if not k.startswith("_") and k not in ("n_probes", "n_classes")}
-    datamodule = datamodule_from_checkpoint(args.ckpt, args.config, [  # the CLI parses the model's parts too
-        "--model", json.dumps(parts), *(["--data.mode", args.mode] if args.mode else [])])
+    datamodule = datamodule_from_checkpoint(args.ckpt, args.config, ["--data.mode", args.mode] if args.mode else [])
     model = HapticGlance.load_from_checkpoint(args.ckpt, map_location="cpu").eval()
     if model.hparams.n_classes != datamodule.n_classes:
         raise ValueError(f"{args.ckpt}: the model knows {model.hparams.n_classes} classes, the data "

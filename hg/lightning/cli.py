@@ -73,12 +73,15 @@ LINK_TARGETS = ("seed", "_instantiator")  # data.seed comes from seed_everything
 
 def datamodule_from_checkpoint(ckpt: str | Path, configs: list[str] = (), args: list[str] = ()) -> ProbeDataModule:
     """The checkpoint's ProbeDataModule, rebuilt by the CLI from its saved hyperparameters, then `configs` and
-    CLI `args` (e.g. `["--data.noise.miss_prob", "0.1"]`) applied on top: the world a model was trained in."""
+    CLI `args` (e.g. `["--data.noise.miss_prob", "0.1"]`) applied on top: the world a model was trained in. The
+    model's saved parts go along, since the CLI parses a whole composition."""
     saved = torch.load(ckpt, map_location="cpu", weights_only=False)
     data = saved.get("datamodule_hyper_parameters")
     if data is None:
         raise ValueError(f"{ckpt}: no datamodule hyperparameters saved; was it written by `hg fit`?")
-    config = {"seed_everything": int(data.get("seed", 0)),
+    model = {k: v for k, v in dict(saved.get("hyper_parameters", {})).items()
+             if not k.startswith("_") and k not in ("n_probes", "n_classes")}  # linked from the data
+    config = {"seed_everything": int(data.get("seed", 0)), "model": model,
               "data": {k: v for k, v in dict(data).items() if k not in LINK_TARGETS}}
     with tempfile.NamedTemporaryFile("w", suffix=".yaml", delete=False) as tmp:  # JSON first: Scene, tuples -> YAML
         yaml.safe_dump(json.loads(json.dumps(config, default=asdict)), tmp)
