@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 import warnings
 from dataclasses import dataclass
 from importlib.metadata import version
@@ -37,12 +36,11 @@ import pybullet_data
 import trimesh
 from scipy.spatial import cKDTree
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from hg.sim import Scene, load_object_set
+from hg.sim.poses import check_below_ground, rotation_matrices
+from hg.sim.symmetry import TOLERANCE, find_symmetry, mirror_matrix, object_symmetries, turn_matrix
 
-from hg.sim import Scene, load_object_set  # noqa: E402
-from hg.sim.poses import check_below_ground, rotation_matrices  # noqa: E402
-from hg.sim.symmetry import TOLERANCE, find_symmetry, mirror_matrix, object_symmetries, turn_matrix  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 DATA = Path(pybullet_data.getDataPath())
 HOUSEHOLD = (  # class, file under pybullet_data, the file's up axis

@@ -9,15 +9,15 @@ candidates at random, named by the same classifier (`--no-planner`: those alone;
 teacher file of seed S was planned over). The library is read in ideal mode; `--mode arm` probes the scored episodes
 with the arm (--robot), `--noise RATE` through a sensor with contact faults (the planner weighs with the sensor's
 model and may probe a candidate again), and `--table-episodes` scores the very episodes the tables score.
-With the library drawn from the scored split's own poses (`--library-split val`, the default) it has seen the
-held-out positions: a reading of what adaptive probes can say. `--library-split train` is a planner usable as it is.
+The library holds training poses (`--library-split train`, the default); `--library-split val` lets it see the
+held-out positions it is scored on: a ceiling of what adaptive probes can say, never a result.
 
 `--save-rollouts FILE` writes the planner's episodes as a teacher file for a policy to copy (hg.planner.save_teacher:
 schema 1, with the world, seeds, candidate grid and library recipe it was planned with).
 
-    .venv/bin/python scripts/plan.py --library 32768 --library-split train --shifts 5 --mirror --episodes 512
-    .venv/bin/python scripts/plan.py --library 32768 --library-split train --shifts 5 --mirror --split train \
-        --episodes 4096 --seed 10 --save-rollouts data/planner/train_s10.npz     # a teacher (model.imitate)
+    .venv/bin/python scripts/plan.py --library 32768 --shifts 5 --mirror --episodes 512
+    .venv/bin/python scripts/plan.py --library 32768 --shifts 5 --mirror --split train \
+        --episodes 4096 --seed 10 --save-rollouts data/planner/train_s10.npz     # a teacher (hg.rl.ImitateTeacher)
 
 Last line: JSON {"planner" [and "fixed", "random"]: {"accuracy": [after probe 1, ..., N], "touches": ..,
 "touches_first_half": .., "tilt_deg": .., "leaning_towards_object": .., "leaning_along_line": .., "places": ..,
@@ -29,20 +29,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from hg.planner import CandidateGrid, LibraryRecipe, evaluate, save_teacher  # noqa: E402
-from hg.provenance import repo_path  # noqa: E402
-from hg.sim import (DEFAULT_URDF, MODES, SPLITS, PoseRegions, Scene, SensorNoise, load_object_set,  # noqa: E402
-                    sample_episodes)
+from hg.planner import CandidateGrid, LibraryRecipe, evaluate, save_teacher
+from hg.provenance import repo_path
+from hg.sim import DEFAULT_URDF, MODES, SPLITS, PoseRegions, Scene, SensorNoise, load_object_set, sample_episodes
 
 
 def scored_episodes(regions: PoseRegions, split: str, episodes: int, n_classes: int, seed: int,
@@ -73,7 +68,7 @@ def main() -> None:
                         help="how the scored episodes are probed (the library always in ideal mode)")
     parser.add_argument("--library", type=int, default=262144,
                         help="library episodes, each probed with every candidate")
-    parser.add_argument("--library-split", choices=SPLITS, default="val")
+    parser.add_argument("--library-split", choices=SPLITS, default="train")
     parser.add_argument("--shifts", type=int, default=0,
                         help="also the library's episodes moved along the line by up to this many place steps each way")
     parser.add_argument("--mirror", action="store_true", help="also the library's episodes mirrored across the line "
