@@ -3,6 +3,9 @@ import os
 import pytest
 
 os.environ.setdefault("WANDB_MODE", "disabled")  # tests never need the network
+# tiny nets on a small machine: one torch thread per process (this one and the CLI runs it starts) is faster than
+# threads that wait for each other, and leaves the other core to a DDP peer or a subprocess
+os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -9,7 +9,7 @@ import torch
 from hg.lightning.data import TrainEpisodes
 from hg.sim import PoseRegions, Scene
 
-TINY = str(Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml")
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 
 def test_ranks_draw_different_training_episodes():
@@ -23,7 +23,8 @@ def test_ranks_draw_different_training_episodes():
 def test_fit_under_ddp_with_two_cpu_processes(tmp_path):
     env = {**os.environ, "WANDB_MODE": "disabled"}
     proc = subprocess.run(
-        [sys.executable, "-m", "hg.lightning.cli", "fit", "--config", TINY, "--trainer.strategy", "ddp",
+        [sys.executable, "-m", "hg.lightning.cli", "fit", "--config", str(CONFIGS / "pcrn_fc.yaml"), "--config",
+         str(CONFIGS / "parts" / "tiny.yaml"), "--trainer.strategy", "ddp",
          "--trainer.devices", "2", "--trainer.accelerator", "cpu", "--trainer.logger", "false",
          "--trainer.default_root_dir", str(tmp_path)],
         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)

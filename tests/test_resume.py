@@ -9,13 +9,13 @@ from pathlib import Path
 import pytest
 import torch
 
-TINY = str(Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml")
-STEPS = 400
-ARGS = ["--config", TINY, "--trainer.max_steps", str(STEPS), "--trainer.val_check_interval", "50",
-        "--last_checkpoint.every_n_train_steps", "20", "--trainer.logger", "false",
-        # the learning-rate schedule's place and the weights' moving average must survive the kill too
-        "--model.lr_final_scale", "0.5", "--trainer.callbacks+=hg.lightning.callbacks.WeightEMA",
-        "--trainer.callbacks.decay=0.9"]
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+STEPS, VALIDATE = 160, 40
+ARGS = ["--config", str(CONFIGS / "pcrn_fc.yaml"), "--config", str(CONFIGS / "parts" / "tiny.yaml"),
+        "--trainer.max_steps", str(STEPS), "--trainer.val_check_interval", str(VALIDATE),
+        "--last_checkpoint.every_n_train_steps", "10", "--trainer.logger", "false",
+        # the schedules' places (the learning rate's, the policy's std) must survive the kill too
+        "--lr_decay.final_scale", "0.5", "--std_decay.final_scale", "0.5"]
 ENV = {**os.environ, "WANDB_MODE": "disabled"}
 
 
@@ -51,31 +51,33 @@ def test_killed_fit_resumes_to_the_same_result(tmp_path, reference, sig):
     deadline = time.time() + 300
     while time.time() < deadline:  # wait for a checkpoint past the first validation, then kill mid-run
         ckpt = last_checkpoint(tmp_path)
-        if ckpt is not None and torch.load(ckpt, weights_only=False)["global_step"] >= 40:
+        if ckpt is not None and torch.load(ckpt, weights_only=False)["global_step"] > VALIDATE:
             break
         time.sleep(0.05)
     proc.send_signal(sig)
     proc.wait(timeout=120)
     killed_at = torch.load(last_checkpoint(tmp_path), weights_only=False)["global_step"]
-    assert 40 <= killed_at < STEPS, "the run must be killed mid-way"
+    assert VALIDATE < killed_at < STEPS, "the run must be killed mid-way"
     fit(tmp_path, "--ckpt_path", str(last_checkpoint(tmp_path)))
     step, state = final_state(tmp_path)
     assert step == reference[0] == STEPS
     for key, value in reference[1].items():
         torch.testing.assert_close(state[key], value, msg=f"{key} differs after resume")
     # the learning curve continues across the kill: the same rows, every validation once
-    assert (tmp_path / "val_curve.csv").read_text() == reference[2] and reference[2].count("\n") == 1 + STEPS // 50
+    assert (tmp_path / "val_curve.csv").read_text() == reference[2]
+    assert reference[2].count("\n") == 1 + STEPS // VALIDATE
 
 
 def test_a_run_stopped_right_after_a_validation_resumes_knowing_its_score(tmp_path):
-    """last.ckpt is written at the end of step 50, before the validation at step 50: it must be written again
+    """last.ckpt is written at the end of step 20, before the validation at step 20: it must be written again
     after it, or a resume forgets that score and may test a worse checkpoint as the best."""
-    fit(tmp_path, "--trainer.max_steps", "50", "--last_checkpoint.every_n_train_steps", "10")
+    fit(tmp_path, "--trainer.max_steps", "20", "--trainer.val_check_interval", "10",
+        "--last_checkpoint.every_n_train_steps", "10")
     checkpoint = torch.load(last_checkpoint(tmp_path), weights_only=False)
-    assert checkpoint["global_step"] == 50
+    assert checkpoint["global_step"] == 20
     best = [state for key, state in checkpoint["callbacks"].items() if "'monitor': 'val/acc'" in key]
     assert len(best) == 1 and best[0]["best_model_score"] is not None
-    assert best[0]["best_model_path"].endswith("best-step50.ckpt")
+    assert best[0]["best_model_path"].endswith("best-step20.ckpt")
     # the resumable callback keeps a plain ModelCheckpoint's state key, as checkpoints from before it have
     latest = [key for key in checkpoint["callbacks"] if "'every_n_train_steps': 10" in key]
     assert len(latest) == 1 and latest[0].startswith("ModelCheckpoint{"), list(checkpoint["callbacks"])

@@ -15,7 +15,9 @@ from PIL import Image
 
 from hg.lightning import HapticGlance, ProbeDataModule
 from hg.lightning.viz import (ProbeMaps, Rollouts, compare_models, confusion_counts, confusion_matrices,
-                              probe_heatmaps)
+                              probe_heatmaps, roll_out)
+from hg.nets import PCRN, FCClassifier
+from hg.policies import GaussianPolicy
 from hg.sim import ProbeSimulator, Scene
 from hg.sim.render import Camera, EpisodeTrace, episode_figure, render_episode, save_frames, save_gif, snapshot
 
@@ -124,18 +126,28 @@ def test_test_set_figures():
 def test_probe_maps_callback_maps_the_scored_rollouts(tmp_path):
     data = ProbeDataModule(mode="ideal", batch_size=8, eval_batch_size=12, test_episodes=12, n_probes=3)
     torch.manual_seed(0)
-    model = HapticGlance(n_classes=data.n_classes, n_probes=3, width=16, representation=32, hidden=32)
+    model = HapticGlance(PCRN(width=16, out_dim=32), lambda dims: GaussianPolicy(dims, hidden=32),
+                         [lambda dims: FCClassifier(dims, hidden=32)], n_classes=data.n_classes, n_probes=3)
     maps = ProbeMaps(render_episodes=True, frame_width=160, frame_height=120)
     trainer = pl.Trainer(logger=False, callbacks=[maps], default_root_dir=tmp_path, accelerator="cpu",
                          enable_progress_bar=False, enable_model_summary=False)
     rollouts_made = []
-    roll = model.rollout
-    model.rollout = lambda *args, **kwargs: rollouts_made.append(1) or roll(*args, **kwargs)
+    roll = model.roll
+    model.roll = lambda *args, **kwargs: rollouts_made.append(kwargs.get("deterministic")) or roll(*args, **kwargs)
     trainer.test(model, datamodule=data, verbose=False)
-    assert len(rollouts_made) == 2  # one batch: the stochastic and the mean-action rollout, none made again
+    assert rollouts_made == [False, True]  # one batch: the stochastic and the mean-action rollout, none made again
     rollouts = Rollouts.concat(maps.parts)
     scored = [trainer.callback_metrics[f"test/acc@{k}"].item() for k in (1, 2, 3)]
     np.testing.assert_allclose(rollouts.accuracy(), scored, atol=1e-6)
+    # a rollout the test step did not make (here the mean action's, with its outputs withheld) is made again from the
+    # batch's seed: the very rollout the test step scored
+    model.attach(data.make_simulator())
+    batch = data.test_dataloader().dataset[0]
+    again = roll_out(model, batch, deterministic=True)
+    scored = [trainer.callback_metrics[f"test/acc_mean_action@{k}"].item() for k in (1, 2, 3)]
+    np.testing.assert_allclose(again.accuracy(), scored, atol=1e-6)
+    assert again.kind == "single mean-action rollout"
+    model.sim.close()
     for name in ("probe_heatmaps.png", "confusion_matrices.png"):
         assert_not_blank(image(tmp_path / name))
     gifs = sorted((tmp_path / "episodes").glob("*.gif"))
@@ -144,7 +156,8 @@ def test_probe_maps_callback_maps_the_scored_rollouts(tmp_path):
 
 def test_render_script_end_to_end(tmp_path):
     env = {**os.environ, "WANDB_MODE": "disabled"}
-    fit = [sys.executable, "-m", "hg.lightning.cli", "fit", "--config", str(ROOT / "configs" / "tiny.yaml"),
+    fit = [sys.executable, "-m", "hg.lightning.cli", "fit", "--config", str(ROOT / "configs" / "pcrn_fc.yaml"),
+           "--config", str(ROOT / "configs" / "parts" / "tiny.yaml"),
            "--trainer.logger", "false", "--trainer.default_root_dir", str(tmp_path),
            "--trainer.enable_progress_bar", "false"]
     subprocess.run(fit, cwd=tmp_path, env=env, check=True, capture_output=True)

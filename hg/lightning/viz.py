@@ -68,8 +68,8 @@ def roll_out(module: pl.LightningModule, batch: dict[str, torch.Tensor], determi
     `done` = (rollout, logits) of that eval step, when it has already been made."""
     labels = batch["labels"].to(module.device)
     if done is None:
-        rollout = module.rollout(labels, batch["poses"], int(batch["seed"]), deterministic=deterministic)
-        _, logits = module.evaluate(rollout, labels)
+        rollout = module.roll(labels, batch["poses"], int(batch["seed"]), deterministic=deterministic)
+        logits, _ = module.predict(rollout)
     else:
         rollout, logits = done
     points = rollout.points.detach().cpu().double().numpy().copy()
