@@ -240,13 +240,14 @@ class StdDecay(pl.Callback):
         self.final_scale = final_scale
 
     def scale(self, step: int, start: int, last: int) -> float:
-        # a run that ends within the warm-up never trains the policy: it is tested at the final std
+        """The factor at training step `step` (0-based) of steps start..last: 1 at `start`, final at `last`, the last
+        training step, with which the model is then tested. A run ending within the warm-up is at the final std."""
         progress = min(max((step - start) / (last - start), 0.0), 1.0) if last > start else 1.0
         return 1.0 + (self.final_scale - 1.0) * progress
 
     def on_train_batch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule, batch, batch_idx: int) -> None:
         if self.final_scale != 1.0 and pl_module.policy.learned:
-            last = schedule_end(trainer, "std_decay")
+            last = schedule_end(trainer, "std_decay") - 1  # the last training step
             pl_module.policy.std_scale.fill_(self.scale(trainer.global_step, pl_module.policy_start, last))
 
 
@@ -264,7 +265,7 @@ class CosineLR(pl.Callback):
     def on_train_batch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule, batch, batch_idx: int) -> None:
         if self.final_scale == 1.0:
             return
-        last = schedule_end(trainer, "lr_decay")
+        last = max(schedule_end(trainer, "lr_decay") - 1, 1)  # the last training step
         optimizer = trainer.optimizers[0]
         if self.base is None:  # each group's own rate (the policy's may be scaled), from the module's settings
             lr = pl_module.hparams.lr

@@ -52,6 +52,9 @@ class HapticGlance(pl.LightningModule):
             raise ValueError(f"model.warmup: a fixed policy ({type(self.policy).__name__}) has nothing to warm up")
         if warmup is not None:
             warmup.prober(self.policy)  # refuses a warm-up that cannot probe with this policy
+        if library_classifier is not None and getattr(self.policy, "grid", None) is None:
+            raise ValueError(f"model.library_classifier names the planner's candidate probes; {type(self.policy).__name__} "
+                             "does not choose among them (hg.policies.CandidateChoice does)")
         self.library = None  # the library classifier, built in setup() from its source (it needs the simulator)
         self.sim: ProbeSimulator | None = None
 
