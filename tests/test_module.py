@@ -469,3 +469,8 @@ def test_scoring_a_checkpoint_trains_nothing_and_gives_what_its_run_gave(tmp_pat
     assert scored["best_checkpoint"] == trained["best_checkpoint"]
     with pytest.raises(FileNotFoundError, match="nope.ckpt: the checkpoint to score is missing"):
         fit_and_test(config, 0, tmp_path / "none", checkpoint=tmp_path / "nope.ckpt", **kwargs)
+    # stopped between saving a new best (which removes the old) and rewriting last.ckpt: the resumed state names a
+    # removed file; the run tests the best checkpoint kept beside it
+    best.rename(best.with_name("best-step999.ckpt"))
+    stale = fit_and_test(config, 0, tmp_path / "trained", **kwargs)
+    assert stale["best_checkpoint"].endswith("best-step999.ckpt") and stale["accuracy"] == trained["accuracy"]

@@ -8,28 +8,16 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from hg.lightning.data import ProbeDataModule, episode_batch
+from hg.lightning.data import ProbeDataModule
 from hg.nets import PCRN, Dims, LSTMEncoder
 from hg.policies import (CandidateChoice, GaussianPolicy, LineScan, Observation, RandomProbes, SidePickingScan)
 from hg.rl import rollout
-from hg.sim import PoseRegions, ProbeSimulator, Scene
 
 ROOT = Path(__file__).resolve().parents[1]
 TEACHER = ROOT / "data" / "planner" / "train65k_s10.npz"  # the planner copy's teacher: 10 probes, 77 candidates
 B, N = 8, 4
 DIMS = Dims(rep=32, n_probes=N, n_classes=4)
 CHOICE = dict(places=3, span=0.5, leans=(1.0,), hidden=32)  # 9 candidates for 4 probes
-
-
-@pytest.fixture(scope="module")
-def sim():
-    with ProbeSimulator("hg4", batch_size=16, mode="ideal") as sim:
-        yield sim
-
-
-@pytest.fixture(scope="module")
-def batch():
-    return episode_batch(PoseRegions(), "train", B, 4, [0, 0, 0, 0])
 
 
 def side_scan(dims: Dims) -> SidePickingScan:

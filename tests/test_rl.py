@@ -17,17 +17,6 @@ N_PROBES, POINT_SCALE = 4, 2.0
 DIMS = Dims(rep=32, n_probes=N_PROBES, n_classes=4)
 
 
-@pytest.fixture(scope="module")
-def sim():
-    with ProbeSimulator("hg4", batch_size=8, mode="ideal") as sim:
-        yield sim
-
-
-@pytest.fixture(scope="module")
-def batch():
-    return episode_batch(PoseRegions(), "train", 8, 4, [0, 0, 0, 0])
-
-
 def encoder() -> PCRN:
     torch.manual_seed(0)
     return PCRN(width=16, out_dim=32)

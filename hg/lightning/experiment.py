@@ -84,6 +84,13 @@ def fit_and_test(configs: str | Path | Sequence[str | Path], seed: int, folder: 
         train_s = next(c for c in run.trainer.callbacks if isinstance(c, TrainingClock)).seconds  # every attempt's
         best = next(c for c in run.trainer.checkpoint_callbacks if getattr(c, "monitor", None) == "val/acc")
         best_path, best_score = best.best_model_path, best.best_model_score
+        if best_path and not Path(best_path).is_file():
+            # stopped between saving a new best (which removes the old one) and rewriting last.ckpt: the state
+            # resumed names the removed file, and the one best checkpoint kept (save_top_k 1) is the newer best
+            kept = sorted(Path(best_path).parent.glob("best-step*.ckpt"), key=lambda p: p.stat().st_mtime)
+            if not kept:
+                raise FileNotFoundError(f"{best_path}: the best checkpoint is gone and no other is kept beside it")
+            best_path, best_score = str(kept[-1]), None
         if best_score is not None:
             val = {"stochastic": float(best_score)}
     start = time.time()
