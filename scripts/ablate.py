@@ -57,6 +57,28 @@ def run(base: list[str], override: str, seed: int, steps: int, val_episodes: int
             "train_late": {k: round(v, 4) for k, v in summary.items()}, "wall_s": round(time.time() - start, 1)}
 
 
+def markdown(out: Path, factors: dict[str, str]) -> str:
+    """The table of the factors' records in `out`: means over seeds, each seed's accuracy after 10 in brackets."""
+    lines = ["| factor | override | seeds | val after 5 | val after 10 (per seed) | mean action after 10 | touch rate (val) "
+             "| clamped share | policy / CE gradient on the encoder |", "|---|---|---|---:|---:|---:|---:|---:|---:|"]
+    for name, override in factors.items():
+        records = [json.loads(p.read_text()) for p in sorted(out.glob(f"{name}_s*.json"))]
+        if not records:
+            continue
+        def mean(key: str, index: int | None = None, late: bool = False) -> float:
+            values = [r["train_late"].get(key, 0.0) if late else r[key] if index is None else r[key][index]
+                      for r in records]
+            return statistics.fmean(values)
+
+        seeds = ", ".join(str(r["seed"]) for r in records)
+        each = ", ".join(f"{r['val_accuracy'][-1]:.3f}" for r in records)
+        lines.append(f"| {name} | `{override or '(the base)'}` | {seeds} | {mean('val_accuracy', 4):.3f} "
+                     f"| {mean('val_accuracy', -1):.3f} ({each}) | {mean('val_accuracy_mean_action', -1):.3f} "
+                     f"| {mean('val_touch_rate'):.3f} | {mean('clamp_share', late=True):.2f} "
+                     f"| {mean('grad_ratio', late=True):.2f} |")
+    return "\n".join(lines) + "\n"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--base", nargs="+", required=True, help="the composition's config files, in order")
@@ -67,9 +89,13 @@ def main() -> None:
     parser.add_argument("--val-episodes", type=int, default=512)
     parser.add_argument("--mode", default="ideal", choices=["ideal", "arm"])
     parser.add_argument("--out", type=Path, required=True, help="folder of the run records")
+    parser.add_argument("--markdown", type=Path, help="train nothing: write the records' table of these factors here")
     args = parser.parse_args()
     os.environ.setdefault("WANDB_MODE", "disabled")
     factors = dict(f.split("=", 1) for f in args.factor)
+    if args.markdown:
+        write_atomic(args.markdown, markdown(args.out, factors))
+        return
     code = commit()  # the code this process imported, whatever the work tree holds by the time a run ends
     table = {}
     for name, override in factors.items():
