@@ -57,22 +57,28 @@ def run(base: list[str], override: str, seed: int, steps: int, val_episodes: int
             "train_late": {k: round(v, 4) for k, v in summary.items()}, "wall_s": round(time.time() - start, 1)}
 
 
+def halfway(accuracy: list[float]) -> float:
+    """The accuracy after half the probes (after 5 of 10)."""
+    return accuracy[len(accuracy) // 2 - 1]
+
+
 def markdown(out: Path, factors: dict[str, str]) -> str:
     """The table of the factors' records in `out`: means over seeds, each seed's accuracy after 10 in brackets."""
-    lines = ["| factor | override | seeds | val after 5 | val after 10 (per seed) | mean action after 10 | touch rate (val) "
+    lines = ["| factor | override | seeds | val after half | val after all (per seed) | mean action after all | touch rate (val) "
              "| clamped share | policy / CE gradient on the encoder |", "|---|---|---|---:|---:|---:|---:|---:|---:|"]
     for name, override in factors.items():
-        records = [json.loads(p.read_text()) for p in sorted(out.glob(f"{name}_s*.json"))]
+        records = [r for r in (json.loads(p.read_text()) for p in sorted(out.glob(f"{name}_s*.json")))
+                   if r["factor"] == name]
         if not records:
             continue
         def mean(key: str, index: int | None = None, late: bool = False) -> float:
             values = [r["train_late"].get(key, 0.0) if late else r[key] if index is None else r[key][index]
-                      for r in records]
-            return statistics.fmean(values)
+                      for r in records if late or index is None or r[key]]  # (a fixed policy has no mean action)
+            return statistics.fmean(values) if values else float("nan")
 
         seeds = ", ".join(str(r["seed"]) for r in records)
         each = ", ".join(f"{r['val_accuracy'][-1]:.3f}" for r in records)
-        lines.append(f"| {name} | `{override or '(the base)'}` | {seeds} | {mean('val_accuracy', 4):.3f} "
+        lines.append(f"| {name} | `{override or '(the base)'}` | {seeds} | {mean('val_accuracy', len(records[0]['val_accuracy']) // 2 - 1):.3f} "
                      f"| {mean('val_accuracy', -1):.3f} ({each}) | {mean('val_accuracy_mean_action', -1):.3f} "
                      f"| {mean('val_touch_rate'):.3f} | {mean('clamp_share', late=True):.2f} "
                      f"| {mean('grad_ratio', late=True):.2f} |")
@@ -107,17 +113,21 @@ def main() -> None:
                           "commit": code, "hardware": hardware(),
                           "command": f"scripts/ablate.py --base {' '.join(args.base)} --steps {args.steps} "
                                      f"--seeds {seed} --mode {args.mode} --val-episodes {args.val_episodes} "
-                                     f"--factor {shlex.quote(f'{name}={override}')}",
+                                     f"--factor {shlex.quote(f'{name}={override}')} --out {args.out}",
                           **run(args.base, override, seed, args.steps, args.val_episodes, args.mode)}
                 path.parent.mkdir(parents=True, exist_ok=True)
                 write_atomic(path, json.dumps(record, indent=1) + "\n")
             record = json.loads(path.read_text())
+            asked = {"override": override, "base": [repo_path(c) for c in args.base], "steps": args.steps,
+                     "mode": args.mode, "val_episodes": args.val_episodes}
+            if (differ := [k for k, v in asked.items() if record.get(k) != v]):
+                raise SystemExit(f"ablate.py: {path}: made with other {differ} than asked; move it away to run anew")
             table.setdefault(name, []).append(record)
-            print(f"{name} seed {seed}: val after 5 / 10 {record['val_accuracy'][4]:.3f} / "
+            print(f"{name} seed {seed}: val after half / all probes {halfway(record['val_accuracy']):.3f} / "
                   f"{record['val_accuracy'][-1]:.3f}, touch {record['val_touch_rate']:.3f}", flush=True)
     print(json.dumps({name: {"seeds": [r["seed"] for r in rs],
-                             "val_after_5": round(statistics.fmean(r["val_accuracy"][4] for r in rs), 4),
-                             "val_after_10": round(statistics.fmean(r["val_accuracy"][-1] for r in rs), 4),
+                             "val_after_half": round(statistics.fmean(halfway(r["val_accuracy"]) for r in rs), 4),
+                             "val_after_all": round(statistics.fmean(r["val_accuracy"][-1] for r in rs), 4),
                              **{k: round(statistics.fmean(r["train_late"].get(k, float("nan")) for r in rs), 4)
                                 for k in ("touch_rate", "clamp_share", "grad_ratio")}}
                       for name, rs in table.items()}))

@@ -77,7 +77,7 @@ def main() -> None:
     parser.add_argument("--places", type=int, default=11, help="candidate places along the line")
     parser.add_argument("--span", type=float, default=0.5, help="the middle of the line they cover (request units)")
     parser.add_argument("--leans", type=float, nargs="*", default=[0.6, 1.0, 2.0],
-                        help="leans across the line, as model.scan_side (0.6: 16.7 degrees, 1.0: 26.6, 2.0: 45)")
+                        help="leans across the line, as SidePickingScan's lean (0.6: 16.7 degrees, 1.0: 26.6, 2.0: 45)")
     parser.add_argument("--along-leans", type=float, nargs="*", default=[],
                         help="leans along the line, to +y and -y (the same sizes as --leans); none by default")
     parser.add_argument("--sigma", type=float, default=0.005, help="touch distance tolerance (m)")
@@ -113,6 +113,8 @@ def main() -> None:
         parser.error(f"--noise {args.noise}: must be in [0, 1)")
     if args.no_planner and (not (args.fixed or args.random) or args.save_rollouts):
         parser.error("--no-planner: needs --fixed or --random, and no --save-rollouts")
+    if args.save_rollouts and (args.split, args.library_split) != ("train", "train"):
+        parser.error("--save-rollouts: a teacher is training data; plan it with --split train --library-split train")
     if args.library_seed is not None and args.save_rollouts:
         parser.error("--library-seed with --save-rollouts: plan a teacher with --seed alone (its library is drawn "
                      "with it, as readers of older teacher files expect)")

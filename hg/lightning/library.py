@@ -7,6 +7,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
+from hg.nets import candidate_index
 from hg.rl import Rollout
 from hg.sim import ProbeSimulator, Scene
 
@@ -14,12 +15,13 @@ from hg.sim import ProbeSimulator, Scene
 @dataclass
 class LibrarySource:
     """Where the library classifier comes from: the library recipe of a teacher file (its planner's), with
-    `episodes` training episodes in place of the file's library size if given. Held-out poses never enter it."""
+    `episodes` training episodes in place of the file's library size if given. The episodes it draws are training
+    poses; their copies shifted along the line and mirrored may land in held-out regions (issue #56)."""
 
     teacher: str
     episodes: int | None = None
 
-    def build(self, data, grid: dict | None) -> "LibraryNamer":
+    def build(self, data, grid: dict | None) -> "LibraryScorer":
         from hg.planner import CandidateGrid, LibraryClassifier, LibraryRecipe, teacher_meta
 
         if not Path(self.teacher).is_file():
@@ -41,11 +43,11 @@ class LibrarySource:
         with ProbeSimulator(data.object_set, 1024, data.scene, "ideal", seed=0) as sim:
             classifier = LibraryClassifier.build(sim, data.regions, file_grid,
                                                  LibraryRecipe.from_meta(meta, self.episodes), data.noise)
-        return LibraryNamer(classifier, torch.from_numpy(file_grid.requests()).float())
+        return LibraryScorer(classifier, torch.from_numpy(file_grid.requests()).float())
 
 
-class LibraryNamer(nn.Module):
-    """A library classifier naming rollouts: which candidate each probe was and what it read (how far from its
+class LibraryScorer(nn.Module):
+    """A library classifier scoring rollouts: which candidate each probe was and what it read (how far from its
     entry point it touched, MISS where nothing was touched), as the planner read its candidates."""
 
     def __init__(self, classifier: nn.Module, candidates: Tensor) -> None:
@@ -57,11 +59,10 @@ class LibraryNamer(nn.Module):
         """(B, N, classes) the library classifier's log posterior after each probe."""
         from hg.planner import MISS
 
-        requests = rollout.requests
-        distance = (requests.detach()[..., None, :] - self.candidates).abs().amax(-1)
-        nearest, chosen = distance.min(-1)
-        if (nearest > 1e-4).any():
-            raise ValueError("library classifier: a probe that is none of the planner's candidates cannot be named")
+        try:
+            chosen = candidate_index(rollout.requests, self.candidates)
+        except ValueError as error:
+            raise ValueError(f"library classifier: {error}: only the planner's candidates can be named") from None
         entries = torch.from_numpy(scene.request_to_probe(self.candidates.cpu().numpy())[0]).to(rollout.points)
         distance = (rollout.points[..., :3] / point_scale - entries[chosen]).norm(dim=-1)
         readings = torch.where(rollout.points[..., 3] > 0.5, distance, MISS)

@@ -45,7 +45,7 @@ class HapticGlance(pl.LightningModule):
         dims = Dims(encoder.out_dim, n_probes, n_classes)
         self.policy = policy(dims)
         self.heads = nn.ModuleList(head(dims) for head in heads)
-        if all(getattr(head, "last_only", False) for head in self.heads):
+        if all(head.last_only for head in self.heads):
             raise ValueError("model.heads: every head scores the last probe only; one must score every probe")
         self.loss, self.warmup, self.library_source = loss, warmup, library_classifier
         if warmup is not None and not self.policy.learned:

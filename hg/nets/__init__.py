@@ -3,7 +3,7 @@ simulator)."""
 
 from hg.nets.dims import Dims
 from hg.nets.heads import Baseline, FCClassifier, LinearClassifier, NClassClassifier
-from hg.nets.location import CandidateLocationNetwork, LocationNetwork
+from hg.nets.location import CandidateLocationNetwork, LocationNetwork, candidate_index
 from hg.nets.lstm import LSTMEncoder
 from hg.nets.mirror import left_of_line, reflect
 from hg.nets.mlp import cumulative_mean, mlp
@@ -25,6 +25,7 @@ __all__ = [
     "NClassClassifier",
     "PointNet",
     "TouchSetClassifier",
+    "candidate_index",
     "cumulative_mean",
     "left_of_line",
     "mlp",

@@ -147,6 +147,16 @@ class LocationNetwork(PolicyState):
         return (mu - action.clamp(-1, 1)).pow(2).sum(-1).mean()
 
 
+def candidate_index(action: Tensor, candidates: Tensor) -> Tensor:
+    """(..., 4) requests -> (...,) the index of each among the candidates (C, 4); refuses one that is none of them."""
+    distance = (action.detach()[..., None, :] - candidates).abs().amax(-1)
+    nearest, index = distance.min(-1)
+    if (nearest > 1e-4).any():
+        bad = action[nearest > 1e-4][0].tolist()
+        raise ValueError(f"request {[round(v, 4) for v in bad]} is not one of the {len(candidates)} candidates")
+    return index
+
+
 class CandidateLocationNetwork(PolicyState):
     """Beyond the paper: pi(a_k | s_k) a categorical choice among fixed candidate requests (C, 4), e.g. the greedy
     planner's (hg.sim.candidate_requests). A Gaussian copying a teacher that leans to either side ends up between
@@ -194,14 +204,8 @@ class CandidateLocationNetwork(PolicyState):
         return mu, (p @ self.candidates.pow(2) - mu.pow(2)).clamp(min=0).sqrt()
 
     def index_of(self, action: Tensor) -> Tensor:
-        """(..., 4) requests -> (...,) the index of each among the candidates; refuses one that is none of them."""
-        distance = (action.detach()[..., None, :] - self.candidates).abs().amax(-1)
-        nearest, index = distance.min(-1)
-        if (nearest > 1e-4).any():
-            bad = action[nearest > 1e-4][0].tolist()
-            raise ValueError(f"CandidateLocationNetwork: request {[round(v, 4) for v in bad]} is not one of the "
-                             f"{len(self.candidates)} candidates")
-        return index
+        """(..., 4) requests -> (...,) the index of each among the candidates (candidate_index)."""
+        return candidate_index(action, self.candidates)
 
     def sample(self, state: Tensor, deterministic: bool | Tensor = False, generator: torch.Generator | None = None,
                exclude: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:

@@ -2,7 +2,7 @@
 
 hg4's shapes are mirror-symmetric, so an object lying off the line to -x and its mirror image to +x are the same
 object: a network that reads the prefixes whose touches lie to -x mirrored sees both sides as one, and the held-out
-position cells to -x as the training cells that hold them mirrored (docs/training.md).
+position cells to -x as the training cells that hold them mirrored (docs/findings.md). Chiral objects are not.
 """
 
 import torch

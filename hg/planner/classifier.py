@@ -3,9 +3,8 @@
 An episode's probes so far weigh every library episode by the likelihood of their readings under that episode's
 readings of the same candidates; the weights summed by class are the posterior. The greedy planner, the evaluation
 path and any analysis update the weights with LibraryClassifier.update, probe after probe in LibraryClassifier.play.
-It reads our learned policies' probes better than their own classifiers on the held-out position cells (0.95-0.96
-against 0.85-0.91, scripts/accuracy_by_cell.py --namer): its library holds the training episodes moved along the line
-and mirrored (hg.planner.library), so it degrades gracefully on positions it never held.
+Its library may hold the training episodes moved along the line and mirrored (hg.planner.library), so it reaches
+positions its training poses never held (docs/findings.md).
 """
 from __future__ import annotations
 
@@ -96,8 +95,8 @@ class LibraryClassifier(nn.Module):
 
     def forward(self, chosen: Tensor, readings: Tensor, ignore: Tensor | None = None) -> Tensor:
         """chosen (B, N) candidate indices, readings (B, N) what each read (MISS: nothing) -> (B, N, classes) log
-        posteriors after probes 1..k+1. ignore (B, N) bool: readings left out (an oracle that knows which readings
-        the sensor corrupted, scripts/noise_ceiling.py)."""
+        posteriors after probes 1..k+1. ignore (B, N) bool: readings left out (e.g. those a faulty sensor corrupted,
+        when an analysis knows them)."""
         return self.after_each_probe(chosen, readings, self.log_posterior, ignore)
 
     def prior(self, batch: int) -> Tensor:

@@ -78,7 +78,7 @@ class GreedyPlanner:
         self.noise = classifier.noise
         self.n_bins, self.n_classes = int(np.ceil(classifier.probe_length / bin)) + 2, classifier.n_classes
         # the library's episodes as they were drawn (the classifier holds them by class): weighed in that order the
-        # entropy rounds as it did before the planner moved here (scripts/planner_ceiling.py), so it chooses the same
+        # entropy rounds as it did before the planner moved into this package (743bddf), so it chooses the same
         # probes to the bit, and a rounding tie between two mirror-image candidates goes the same way
         self.drawn = classifier.drawn.cpu()
         library = classifier.library.T[classifier.drawn].cpu().numpy()  # (L, C)

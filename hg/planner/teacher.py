@@ -118,6 +118,9 @@ def load_teacher(paths: list[str | Path], *, object_set_name: str, scene: Scene,
         expected = json.loads(json.dumps({"objects": object_set_name, "eval_seed": regions.seed, "noise": rate,
                                           "scene": asdict(scene), "regions": regions_meta(regions),
                                           "sensor": asdict(noise)}))  # as the meta holds them: tuples as lists
+        if meta.get("library_split", "train") != "train":
+            raise ValueError(f"{path}: teacher meta library_split={meta['library_split']!r}: its planner weighed "
+                             "held-out poses; a teacher must be planned over training poses only")
         for field, want in expected.items():
             have = meta.get(field)
             if (meta["schema"] < 1 and field not in meta) or have == want:  # schema 0: checked on what it carries

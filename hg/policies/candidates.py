@@ -26,6 +26,9 @@ class CandidateChoice(LearnedPolicy):
         except ValueError as error:
             raise ValueError(f"CandidateChoice: places / span / leans: {error}") from None
         state_dim = dims.rep + 3 * len(candidates) + dims.n_probes
+        if reads_detached and not reads_encoder:
+            raise ValueError("CandidateChoice: reads_detached keeps REINFORCE out of the encoder, which this choice "
+                             "does not read (reads_encoder: false)")
         super().__init__(state_dim, reads_detached)
         self.n_probes, self.grid = dims.n_probes, {"places": places, "span": span, "leans": list(leans)}
         self.location = CandidateLocationNetwork(state_dim, candidates, hidden=hidden,

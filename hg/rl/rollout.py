@@ -25,7 +25,7 @@ class Rollout:
 def rollout(sim: ProbeSimulator, policy: Policy, labels: Tensor, poses: Tensor, seed: int, n_probes: int,
             point_scale: float, encoder: nn.Module | None = None, deterministic: bool = False,
             requests: Tensor | None = None, faults: Tensor | None = None) -> Rollout:
-    """Probe the episodes (labels (B,), poses (B, 7)) with `policy`, or with the given requests (B, N, 4) (a
+    """Probe the episodes (labels (B,), poses (B, 6)) with `policy`, or with the given requests (B, N, 4) (a
     teacher's). The seed drives the policy's sampling and the sensor's faults, or the faults are the given (B, N, 2)
     uniforms (a teacher's, ProbeSimulator.probe). deterministic: the mean action. A learned policy reads the
     `encoder`'s representations of the probes so far, encoded one probe at a time (encoder.step)."""

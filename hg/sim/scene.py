@@ -89,7 +89,7 @@ def candidate_requests(places: int, span: float, leans: list[float] | tuple[floa
                        along_leans: list[float] | tuple[float, ...] = ()) -> np.ndarray:
     """(C, 4) requests a discrete chooser picks from (the greedy planner, or a location network choosing among
     candidates): every place of a scan (evenly over the middle `span` of the line, in request units) with every
-    direction, straight down first, then to +x and -x by each lean (ux = +-1, uz = 1 - lean, as model.scan_side),
+    direction, straight down first, then to +x and -x by each lean (ux = +-1, uz = 1 - lean, as hg.policies.SidePickingScan's lean),
     then along the line to +y and -y by each of `along_leans` (uy = +-1). The set is its own mirror image across the
     line (ux -> -ux), as the mirrored views need."""
     if places < 1 or not 0 < span <= 1 or any(not 0 < lean <= 2 for lean in (*leans, *along_leans)):

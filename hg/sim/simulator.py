@@ -160,7 +160,7 @@ class ProbeSimulator:
         """Probe every episode once; requests (n, 4) in [-1, 1], one row per episode of the last reset. faults
         (n, 2) in [0, 1): the sensor's contact faults as given uniforms instead of its own draws (column 0 below
         miss_prob corrupts a touch, below false_contact_prob a miss; column 1 is where along the ray a false touch
-        lies), so that a teacher's episodes replay the faults its planner read (model.imitate under noise)."""
+        lies), so that a teacher's episodes replay the faults its planner read (hg.rl.ImitateTeacher under noise)."""
         n = len(self.labels)
         requests = np.asarray(requests, dtype=np.float64)
         if n == 0:
