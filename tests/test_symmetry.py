@@ -62,3 +62,22 @@ def test_a_turn_axis_off_the_box_centre():
     s = find_symmetry(prism)
     assert s.turn_order == 3 and s.mirror
     assert s.centre[1] == pytest.approx(-0.15 / 4, abs=2e-3)  # centroid 1/4 of the radius below the box centre
+
+
+def test_components_that_mirror_episodes_refuse_an_object_set_with_chiral_objects(tmp_path):
+    """The mirror-reading touch sets and the library's mirror images assume every object is its own mirror image:
+    on pyb10 (four chiral blobs) they are refused, naming the classes; on hg4 they run."""
+    from hg.lightning.cli import cli
+    from hg.planner import CandidateGrid, LibraryRecipe
+    from hg.sim import PoseRegions, ProbeSimulator
+
+    pyb10 = str(PYB10)
+    args = ["--config", "configs/side_scan.yaml", "--config", "configs/parts/touch_sets.yaml", "--config",
+            "configs/parts/tiny.yaml", "--trainer.logger", "false", "--trainer.default_root_dir", str(tmp_path)]
+    with pytest.raises(ValueError, match=r"TouchSetClassifier\(mirror=true\): .*blob_002"):
+        cli(["fit", *args, "--data.objects", pyb10, "--trainer.max_steps", "1"])
+    with ProbeSimulator(pyb10, batch_size=8, mode="ideal") as sim, pytest.raises(ValueError, match="blob_013"):
+        LibraryRecipe(size=8, mirror=True).draw(sim, PoseRegions(), CandidateGrid())
+    with ProbeSimulator("hg4", batch_size=8, mode="ideal") as sim:
+        readings, labels, _ = LibraryRecipe(size=8, mirror=True).draw(sim, PoseRegions(), CandidateGrid())
+    assert len(readings) == 16 and len(labels) == 16  # each episode and its mirror image

@@ -14,6 +14,7 @@ import numpy as np
 from hg.sim.poses import SPLITS, PoseRegions, sample_episodes
 from hg.sim.scene import candidate_requests, mirrored_directions
 from hg.sim.simulator import ProbeSimulator
+from hg.sim.symmetry import require_mirror
 
 MISS = -1.0  # the reading of a probe that touched nothing
 
@@ -95,6 +96,8 @@ class LibraryRecipe:
         if sim.mode != "ideal":
             raise ValueError(f"LibraryRecipe.draw: the simulator probes in {sim.mode!r} mode; a library is read in "
                              "ideal mode")
+        if self.mirror:
+            require_mirror(sim.objects, "the library's mirror images (LibraryRecipe.mirror)")
         labels, poses = sample_episodes(regions, self.split, self.size, len(sim.classes),
                                         np.random.default_rng(self.seed + 1))
         return library_readings(sim, labels, poses, grid.places, grid.span, list(grid.leans), self.shifts,

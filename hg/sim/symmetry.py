@@ -7,6 +7,8 @@ bounding-box diagonal. Every symmetry of a surface fixes its area centroid, so t
 """
 from __future__ import annotations
 
+import hashlib
+
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -133,8 +135,25 @@ def _best_mirror(surface: _Surface, order: int | None, tolerance: float) -> tupl
 
 def object_symmetries(objects: ObjectSet, tolerance: float = TOLERANCE, points: int = 2000,
                       seed: int = 0) -> tuple[Symmetry, ...]:
-    """find_symmetry for every object of the set, in class order."""
-    return tuple(find_symmetry(mesh, tolerance, points, seed) for mesh in objects.meshes)
+    """find_symmetry for every object of the set, in class order; remembered per mesh content, since every
+    component that mirrors episodes asks."""
+    key = (tuple(hashlib.md5(m.vertices.tobytes() + m.faces.tobytes()).hexdigest() for m in objects.meshes),
+           tolerance, points, seed)
+    if key not in _FOUND:
+        _FOUND[key] = tuple(find_symmetry(mesh, tolerance, points, seed) for mesh in objects.meshes)
+    return _FOUND[key]
+
+
+_FOUND: dict[tuple, tuple[Symmetry, ...]] = {}
+
+
+def require_mirror(objects: ObjectSet, who: str) -> None:
+    """Refuse a component (`who`) that reads an episode and its mirror image across the probe line alike, for an
+    object set with chiral objects (check_mirror)."""
+    try:
+        check_mirror(objects.names, object_symmetries(objects))
+    except ValueError as error:
+        raise ValueError(f"{who}: {error}") from None
 
 
 def check_mirror(names: Sequence[str], symmetries: Sequence[Symmetry]) -> None:
