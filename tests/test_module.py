@@ -474,3 +474,26 @@ def test_scoring_a_checkpoint_trains_nothing_and_gives_what_its_run_gave(tmp_pat
     best.rename(best.with_name("best-step999.ckpt"))
     stale = fit_and_test(config, 0, tmp_path / "trained", **kwargs)
     assert stale["best_checkpoint"].endswith("best-step999.ckpt") and stale["accuracy"] == trained["accuracy"]
+
+
+def test_gradient_diagnostics_measure_what_the_policy_term_sends_into_the_encoder(tmp_path):
+    """diagnostics.csv: every step here, the encoder gradient norms of the policy term and the cross-entropy; zero
+    for the policy when REINFORCE is kept out of the encoder; a resumed run continues the file."""
+    def fit(folder, steps, *extra):
+        run = cli(args_of(ROWS["pcrn_fc"], "--trainer.default_root_dir", str(folder), "--trainer.max_steps",
+                          str(steps), "--diagnostics.every_n_steps", "1", "--checkpoint.dirpath", str(folder / "ck"),
+                          "--last_checkpoint.dirpath", str(folder / "ck"), "--last_checkpoint.every_n_train_steps",
+                          "1", *extra), run=False)
+        last = folder / "ck" / "last.ckpt"
+        run.trainer.fit(run.model, datamodule=run.datamodule, ckpt_path=str(last) if last.is_file() else None)
+        return list(csv.DictReader((folder / "diagnostics.csv").open()))
+
+    rows = fit(tmp_path / "shared", 2)
+    assert [float(r["step"]) for r in rows] == [0.0, 1.0]
+    assert all(float(r["grad_policy"]) > 0 and float(r["grad_ce"]) > 0 for r in rows)
+    assert float(rows[0]["grad_ratio"]) == pytest.approx(float(rows[0]["grad_policy"]) / float(rows[0]["grad_ce"]))
+    assert {"clamp_share", "touch_rate@1", "advantage_std", "std_py"} <= set(rows[0])
+    resumed = fit(tmp_path / "shared", 4)
+    assert [float(r["step"]) for r in resumed] == [0.0, 1.0, 2.0, 3.0] and resumed[:2] == rows
+    detached = fit(tmp_path / "detached", 2, "--model.policy.init_args.reads_detached", "true")
+    assert all(float(r["grad_policy"]) == 0 and float(r["grad_ce"]) > 0 for r in detached)

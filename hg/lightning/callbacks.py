@@ -211,6 +211,10 @@ class GradientDiagnostics(pl.Callback):
             row["grad_ratio"] = row["grad_policy"] / max(row["grad_ce"], 1e-12)
         pl_module.log_dict({f"train/{k}": v for k, v in row.items() if k != "step"})
         row |= {k: float(v.detach()) for k, v in terms.items()}
+        path = run_dir(trainer) / "diagnostics.csv"
+        if not self.rows and path.is_file():  # a resumed run continues its file, dropping steps it trains again
+            self.rows = [{k: float(v) for k, v in r.items() if v != ""} for r in csv.DictReader(path.open())
+                         if float(r["step"]) < trainer.global_step]
         self.rows.append(row)
         if trainer.is_global_zero:
             keys = list(dict.fromkeys(k for r in self.rows for k in r))
@@ -218,7 +222,7 @@ class GradientDiagnostics(pl.Callback):
             writer = csv.DictWriter(text, keys)
             writer.writeheader()
             writer.writerows(self.rows)
-            write_atomic(run_dir(trainer) / "diagnostics.csv", text.getvalue())
+            write_atomic(path, text.getvalue())
 
 
 def schedule_end(trainer: pl.Trainer, name: str) -> int:
