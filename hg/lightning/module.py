@@ -54,8 +54,8 @@ class HapticGlance(pl.LightningModule):
         if warmup is not None:
             warmup.prober(self.policy)  # refuses a warm-up that cannot probe with this policy
         if library_classifier is not None and getattr(self.policy, "grid", None) is None:
-            raise ValueError(f"model.library_classifier names the planner's candidate probes; {type(self.policy).__name__} "
-                             "does not choose among them (hg.policies.CandidateChoice does)")
+            raise ValueError(f"model.library_classifier names the planner's candidate probes; "
+                             f"{type(self.policy).__name__} does not choose among them (CandidateChoice does)")
         self.library = None  # the library classifier, built in setup() from its source (it needs the simulator)
         self.sim: ProbeSimulator | None = None
 
@@ -109,7 +109,8 @@ class HapticGlance(pl.LightningModule):
     # -- loss ----------------------------------------------------------------------------------------
     def evaluate(self, rollout: Rollout, labels: Tensor, regime: Regime) -> tuple[dict[str, Tensor], Tensor]:
         """The loss terms of a finished rollout and the logits (B, N, C). Eq. (6) is self.loss; the terms beyond the
-        paper (the imitation of a teacher, the policy's own, e.g. its anchor) are named and added here, and only here."""
+        paper (the imitation of a teacher, the policy's own, e.g. its anchor) are named and added here, and only
+        here."""
         logits, rep = self.predict(rollout)
         evaluated = None
         if regime != "classify" and isinstance(self.policy, LearnedPolicy):
@@ -191,5 +192,5 @@ class HapticGlance(pl.LightningModule):
         # the location network's (not the baseline's); a list, not a set: the order must survive a resume
         policy = list(self.policy.location.parameters()) if isinstance(self.policy, LearnedPolicy) else []
         rest = [p for p in self.parameters() if all(p is not q for q in policy)]
-        return torch.optim.Adam([{"params": rest}, {"params": policy, "lr": self.hparams.lr * self.hparams.policy_lr_scale}],
-                                lr=self.hparams.lr)
+        slow = self.hparams.lr * self.hparams.policy_lr_scale
+        return torch.optim.Adam([{"params": rest}, {"params": policy, "lr": slow}], lr=self.hparams.lr)

@@ -18,7 +18,8 @@ class GaussianPolicy(LearnedPolicy):
 
     Beyond the paper, with a `prior` scan the mean starts on the scan's requests (the mean head starts at zero and
     the scan's request is added before the tanh; components beyond +-0.9 start at +-0.9, where tanh still has a
-    slope the policy can climb), so a classifier trained behind the scan keeps its probes when the policy takes over; `anchor` then charges for the mean's squared distance from the scan, so the policy
+    slope the policy can climb), so a classifier trained behind the scan keeps its probes when the policy takes over;
+    `anchor` then charges for the mean's squared distance from the scan, so the policy
     moves only where the reward pays for it. `truncated`: samples re-drawn inside [-1, 1] with the truncated
     Gaussian's log-probability (LocationNetwork) instead of clamped."""
 

@@ -78,7 +78,8 @@ class SidePickingScan(LineScan):
         scan = super().requests(points)
         n = scan.shape[1]
         touched, z = points[..., 3] > 0.5, points[..., 2]
-        first = torch.where(touched.any(1), touched.float().argmax(1), torch.full_like(touched[:, 0], n, dtype=torch.long))
+        none = torch.full_like(touched[:, 0], n, dtype=torch.long)  # index n: nothing touched
+        first = torch.where(touched.any(1), touched.float().argmax(1), none)
         k = torch.arange(n, device=scan.device)
         alternate = torch.where(k % 2 == 0, 1.0, -1.0)
         both = (first == 0) & touched[:, 1]
