@@ -1,7 +1,8 @@
 """Golden numbers of the pre-refactor HapticGlance (commit 743bddf): a tiny ideal-mode rollout and its loss terms at
 a fixed seed for four configs, with the tiny model's weights, so that tests/test_golden.py checks the composed
-model of the refactor gives the same numbers from the same weights. Run once at 743bddf:
-    WANDB_MODE=disabled .venv/bin/python tests/golden/record.py
+model of the refactor gives the same numbers from the same weights. It reads the old flags, so it runs only on
+the old code, where it was run once (commit 3541413, whose code is 743bddf's):
+    git checkout 3541413 && WANDB_MODE=disabled .venv/bin/python tests/golden/record.py
 """
 import json
 from pathlib import Path
