@@ -30,7 +30,8 @@ def main(argv: list[str]) -> list[Path]:
     parser.add_argument("--out", required=True, type=Path, help="folder for the pictures")
     parser.add_argument("--config", action="append", default=[],
                         help="config applied over the checkpoint's data settings (repeatable)")
-    parser.add_argument("--split", choices=("test", "val"), default="test")
+    parser.add_argument("--split", choices=("val", "test"), default="val",
+                        help="the episodes to draw (default val: a diagnostic never reads the test split unasked)")
     parser.add_argument("--mode", choices=("arm", "ideal"),
                         help="probing mode of the rollouts (default: the checkpoint's); frames always show the arm")
     parser.add_argument("--mean-action", action="store_true", help="the mean-action policy instead of a sampled one")

@@ -98,7 +98,7 @@ def test_composed_model_reproduces_the_golden_numbers(name: str, tmp_path: Path)
         rollout = model.roll(labels, poses, SEED, deterministic=model.policy.learned)
         logits, _ = model.predict(rollout)
         if "eval_named" in record:
-            named = model.library.name(rollout, model.sim.scene, model.hparams.point_scale)
+            named = model.library.name(rollout, model.hparams.point_scale)
             close(named, record["eval_named"])
             logits = logits + named
     close(rollout.requests, record["eval"]["requests"])

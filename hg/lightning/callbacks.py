@@ -202,7 +202,7 @@ class GradientDiagnostics(pl.Callback):
         row = {"step": float(trainer.global_step)}
         parts = {"ce": terms["loss_ce"]}
         if "loss_policy" in terms:
-            parts["policy"] = pl_module.loss.beta * float(pl_module.policy.std_scale) * terms["loss_policy"]
+            parts["policy"] = pl_module.loss.policy_weight(float(pl_module.policy.std_scale)) * terms["loss_policy"]
         for name, term in parts.items():
             grads = torch.autograd.grad(term, params, retain_graph=True, allow_unused=True)
             row[f"grad_{name}"] = float(torch.sqrt(sum((g.pow(2).sum() for g in grads if g is not None),
@@ -264,18 +264,12 @@ class CosineLR(pl.Callback):
         if not 0.0 < final_scale <= 1.0:
             raise ValueError(f"lr_decay.final_scale={final_scale}: must be in (0, 1]")
         self.final_scale = final_scale
-        self.base: list[float] | None = None
 
     def on_train_batch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule, batch, batch_idx: int) -> None:
         if self.final_scale == 1.0:
             return
         last = max(schedule_end(trainer, "lr_decay") - 1, 1)  # the last training step
-        optimizer = trainer.optimizers[0]
-        if self.base is None:  # each group's own rate (the policy's may be scaled), from the module's settings
-            lr = pl_module.hparams.lr
-            self.base = [lr if i == 0 else lr * pl_module.hparams.policy_lr_scale
-                         for i in range(len(optimizer.param_groups))]
         final = self.final_scale
         factor = final + (1.0 - final) * 0.5 * (1.0 + math.cos(math.pi * min(trainer.global_step / last, 1.0)))
-        for group, base in zip(optimizer.param_groups, self.base):
-            group["lr"] = base * factor
+        for group in trainer.optimizers[0].param_groups:  # each group's own rate (the policy's may be scaled)
+            group["lr"] = group["initial_lr"] * factor

@@ -15,6 +15,7 @@ import pytorch_lightning as pl
 import torch
 from torch.utils.data import DataLoader, Dataset, IterableDataset
 
+from hg import planner
 from hg.sim import SPLITS, DEFAULT_URDF, PoseRegions, ProbeSimulator, Scene, SensorNoise, load_object_set, sample_episodes
 
 Batch = dict[str, torch.Tensor]
@@ -116,10 +117,8 @@ class ProbeDataModule(pl.LightningDataModule):
 
     def load_teacher(self, paths: list[str]) -> Batch:
         """A teacher's episodes made in this world (hg.planner.load_teacher checks they were)."""
-        from hg.planner import load_teacher
-
-        return load_teacher(paths, object_set_name=self.object_set.name, scene=self.scene, regions=self.regions,
-                            n_probes=self.n_probes, noise=self.noise)
+        return planner.load_teacher(paths, object_set_name=self.object_set.name, scene=self.scene,
+                                    regions=self.regions, n_probes=self.n_probes, noise=self.noise)
 
     def describe(self) -> dict:
         """What a results file should record about the world."""

@@ -8,8 +8,9 @@ import torch
 from torch import Tensor, nn
 
 from hg.nets import candidate_index
+from hg.planner import MISS, CandidateGrid, LibraryClassifier, LibraryRecipe, teacher_meta
 from hg.rl import Rollout
-from hg.sim import ProbeSimulator, Scene
+from hg.sim import ProbeSimulator
 
 
 @dataclass
@@ -22,8 +23,6 @@ class LibrarySource:
     episodes: int | None = None
 
     def build(self, data, grid: dict | None) -> "LibraryScorer":
-        from hg.planner import CandidateGrid, LibraryClassifier, LibraryRecipe, teacher_meta
-
         if not Path(self.teacher).is_file():
             raise FileNotFoundError(f"model.library_classifier.teacher: {self.teacher}: teacher file not found "
                                     "(write one with scripts/plan.py --save-rollouts)")
@@ -43,27 +42,28 @@ class LibrarySource:
         with ProbeSimulator(data.object_set, 1024, data.scene, "ideal", seed=0) as sim:
             classifier = LibraryClassifier.build(sim, data.regions, file_grid,
                                                  LibraryRecipe.from_meta(meta, self.episodes), data.noise)
-        return LibraryScorer(classifier, torch.from_numpy(file_grid.requests()).float())
+        candidates = file_grid.requests()
+        return LibraryScorer(classifier, torch.from_numpy(candidates).float(),
+                             torch.from_numpy(data.scene.request_to_probe(candidates)[0]).float())
 
 
 class LibraryScorer(nn.Module):
     """A library classifier scoring rollouts: which candidate each probe was and what it read (how far from its
     entry point it touched, MISS where nothing was touched), as the planner read its candidates."""
 
-    def __init__(self, classifier: nn.Module, candidates: Tensor) -> None:
+    def __init__(self, classifier: nn.Module, candidates: Tensor, entries: Tensor) -> None:
+        """candidates (C, 4) requests and their entry points (C, 3) on the probe line (metres)."""
         super().__init__()
         self.classifier = classifier
         self.register_buffer("candidates", candidates, persistent=False)
+        self.register_buffer("entries", entries, persistent=False)
 
-    def name(self, rollout: Rollout, scene: Scene, point_scale: float) -> Tensor:
+    def name(self, rollout: Rollout, point_scale: float) -> Tensor:
         """(B, N, classes) the library classifier's log posterior after each probe."""
-        from hg.planner import MISS
-
         try:
             chosen = candidate_index(rollout.requests, self.candidates)
         except ValueError as error:
             raise ValueError(f"library classifier: {error}: only the planner's candidates can be named") from None
-        entries = torch.from_numpy(scene.request_to_probe(self.candidates.cpu().numpy())[0]).to(rollout.points)
-        distance = (rollout.points[..., :3] / point_scale - entries[chosen]).norm(dim=-1)
+        distance = (rollout.points[..., :3] / point_scale - self.entries.to(rollout.points)[chosen]).norm(dim=-1)
         readings = torch.where(rollout.points[..., 3] > 0.5, distance, MISS)
         return self.classifier(chosen, readings)

@@ -170,7 +170,7 @@ class HapticGlance(pl.LightningModule):
             scored[deterministic] = (rollout, logits.detach())
             predictions = {"": logits}
             if self.library is not None:
-                named = self.library.name(rollout, self.sim.scene, self.hparams.point_scale)
+                named = self.library.name(rollout, self.hparams.point_scale)
                 predictions |= {"_library": named, "_mixed": logits + named}
             metrics = {f"{stage}/touch_rate{suffix}": rollout.points[..., 3].mean()}
             for who, predicted in predictions.items():
@@ -192,5 +192,7 @@ class HapticGlance(pl.LightningModule):
         # the location network's (not the baseline's); a list, not a set: the order must survive a resume
         policy = list(self.policy.location.parameters()) if isinstance(self.policy, LearnedPolicy) else []
         rest = [p for p in self.parameters() if all(p is not q for q in policy)]
-        slow = self.hparams.lr * self.hparams.policy_lr_scale
-        return torch.optim.Adam([{"params": rest}, {"params": policy, "lr": slow}], lr=self.hparams.lr)
+        lr, slow = self.hparams.lr, self.hparams.lr * self.hparams.policy_lr_scale
+        # initial_lr: each group's own rate, which a schedule scales; it rides in the optimizer's state on resume
+        groups = [{"params": rest, "initial_lr": lr}, {"params": policy, "lr": slow, "initial_lr": slow}]
+        return torch.optim.Adam(groups, lr=lr)

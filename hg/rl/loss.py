@@ -56,6 +56,10 @@ class HybridLoss:
         if self.advantage not in ("return", "reward"):
             raise ValueError(f"loss.advantage={self.advantage!r}: expected 'return' or 'reward'")
 
+    def policy_weight(self, policy_scale: float = 1.0) -> float:
+        """The policy term's weight in the loss: beta, times the policy's spread scale (see __call__)."""
+        return self.beta * policy_scale
+
     def __call__(self, logits: Tensor, labels: Tensor, log_pi: Tensor | None = None, baseline: Tensor | None = None,
                  policy_scale: float = 1.0) -> dict[str, Tensor]:
         """logits (B, N, C), the prediction after each probe; log_pi (B, N) log pi(a_k | s_k) of the detached
@@ -80,5 +84,5 @@ class HybridLoss:
         policy = -(log_pi * advantage).mean()  # autograd of log N(x; mu, sigma) gives xi_mu, xi_sigma of eq. (4), (5)
         baseline_mse = F.mse_loss(baseline, returns)  # b_k is fitted to the return
         terms.update(loss_policy=policy, loss_baseline=baseline_mse,
-                     loss=cross_entropy + self.beta * policy_scale * policy + baseline_mse)
+                     loss=cross_entropy + self.policy_weight(policy_scale) * policy + baseline_mse)
         return terms
