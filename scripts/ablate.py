@@ -16,6 +16,7 @@ import json
 import os
 import shlex
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -100,7 +101,9 @@ def main() -> None:
     os.environ.setdefault("WANDB_MODE", "disabled")
     factors = dict(f.split("=", 1) for f in args.factor)
     if args.markdown:
-        write_atomic(args.markdown, markdown(args.out, factors))
+        made_by = " ".join(["scripts/ablate.py", *(shlex.quote(a) for a in sys.argv[1:])])
+        write_atomic(args.markdown, f"Made by `{made_by}` from the run records in {args.out}; each record holds the "
+                                    f"command and commit of its run.\n\n" + markdown(args.out, factors))
         return
     code = commit()  # the code this process imported, whatever the work tree holds by the time a run ends
     table = {}
