@@ -4,7 +4,7 @@
         --out urdf/kuka_iiwa_probe.urdf
 
 ROBOT.urdf is a path, or a path inside the installed pybullet_data. The last line printed is JSON with
-reach_fraction, base_position, base_rpy_deg and out. Errors print one line and exit with status 1.
+reach_fraction, base_position, base_rpy_deg and out. Errors print one line and exit with status 2.
 """
 from __future__ import annotations
 
@@ -48,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
         result = run(parse_args(argv))
     except (ValueError, FileNotFoundError) as exc:
         print(f"swap_urdf.py: error: {exc}", file=sys.stderr)
-        return 1
+        return 2
     print(result.report)
     print(json.dumps(result.summary()))
     return 0

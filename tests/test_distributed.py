@@ -26,10 +26,12 @@ def test_fit_under_ddp_with_two_cpu_processes(tmp_path):
         [sys.executable, "-m", "hg.lightning.cli", "fit", "--config", str(CONFIGS / "pcrn_fc.yaml"), "--config",
          str(CONFIGS / "parts" / "tiny.yaml"), "--trainer.strategy", "ddp",
          "--trainer.devices", "2", "--trainer.accelerator", "cpu", "--trainer.logger", "false",
-         "--trainer.default_root_dir", str(tmp_path)],
+         "--trainer.default_root_dir", str(tmp_path), "--trainer.max_steps", "5"],
         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     checkpoint = torch.load(next(tmp_path.rglob("last.ckpt")), weights_only=False)
-    assert checkpoint["global_step"] == 4  # tiny.yaml's max_steps: the final step is saved, not only a validation's
+    assert checkpoint["global_step"] == 5  # max_steps, between two validations (every 2): the final step is saved
+    curve = (tmp_path / "val_curve.csv").read_text().splitlines()
+    assert [row.split(",")[0] for row in curve[1:]] == ["2", "4", "5"]  # and validated
     scores = [state.get("best_model_score") for state in checkpoint["callbacks"].values() if "best_model_score" in state]
     assert scores and scores[0] is not None  # val/acc was reduced across ranks and monitored

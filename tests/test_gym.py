@@ -1,4 +1,7 @@
 """The gymnasium environments over the real simulator."""
+import subprocess
+import sys
+
 import gymnasium
 import numpy as np
 import pytest
@@ -110,3 +113,18 @@ def test_vector_env_matches_probing_each_episode_alone():
                 np.testing.assert_allclose(observations["points"][i, k], point, atol=1e-5)
                 assert steps[k][1][i] == point[3] == float(steps[k][4]["touched"][i])
     envs.close()
+
+
+@pytest.mark.parametrize("code", [
+    "import hg, sys; print(int('hg.sim.gym_env' in sys.modules), int('torch' in sys.modules)); import gymnasium; "
+    "env = gymnasium.make('HapticGlance-v0', n_probes=2, mode='ideal')",
+    "import gymnasium; env = gymnasium.make('hg:HapticGlance-v0', n_probes=2, mode='ideal')"])
+def test_the_environment_registers_on_import_hg(code):
+    """As panda-gym does on `import panda_gym`: no need to know about hg.sim.gym_env, and nothing heavy on import."""
+    done = subprocess.run([sys.executable, "-c", f"{code}; env.reset(seed=0); print(env.spec.id)"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    lines = done.stdout.split()
+    assert lines[-1].endswith("HapticGlance-v0")
+    if code.startswith("import hg,"):
+        assert lines[:2] == ["0", "0"]  # registered, yet neither the simulator nor torch imported

@@ -1,6 +1,5 @@
 """Simulator tests on real PyBullet ray casts and the real probe arm, at small sizes."""
 import math
-import warnings
 
 import numpy as np
 import pytest
@@ -228,10 +227,12 @@ def test_empty_and_open_meshes(tmp_path):
     box = trimesh.creation.box()
     box.update_faces(np.arange(len(box.faces)) != 0)
     box.export(tmp_path / "open.stl")
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
+    with pytest.raises(ValueError, match=r"open.stl: mesh is not watertight \(\d+ open edges\)"):
         load_folder(tmp_path)
-    assert any("open.stl" in str(w.message) and "watertight" in str(w.message) for w in caught)
+    (tmp_path / "open.stl").unlink()
+    trimesh.creation.box((300.0, 200.0, 150.0)).export(tmp_path / "millimetres.stl")
+    with pytest.raises(ValueError, match=r"millimetres.stl: mesh is 300 units across.*scale it by 0.001"):
+        load_folder(tmp_path)
 
 
 def test_ranges_that_put_objects_above_ground():

@@ -14,12 +14,14 @@ import yourdfpy
 from hg.sim.client import BulletClient
 from hg.sim.robot import DEFAULT_URDF, TOOL_LINK, load_robot
 from hg.sim.scene import Scene
-from hg.sim.urdf_tools import BasePlacement, attach_probe, kinematic_copy, load_urdf, search_base, swap_robot
+from hg.sim.urdf_tools import (BasePlacement, attach_probe, kinematic_copy, load_urdf, pick_tool_link, resolve_urdf,
+                               search_base, set_base, swap_robot)
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "swap_urdf.py"
 COMMITTED = [ROOT / "urdf" / "kuka_iiwa_probe.urdf", ROOT / "urdf" / "franka_panda_probe.urdf", DEFAULT_URDF]
 OUR_BASE = BasePlacement(0.45, 0.0, 0.25)  # where urdf/hg_probe_arm.urdf stands
+ROBOTS = ROOT / "tests" / "data" / "robots"  # vendor-style structures, written by make_robots.py there
 
 
 def load_script():
@@ -51,14 +53,16 @@ def bare_arm(path: Path, mesh: bool = False) -> Path:
     return path
 
 
-def tiny_arm(path: Path) -> Path:
-    """Two joints, 0.1 m links: it cannot reach a probe line 0.8 m long."""
+def tiny_arm(path: Path, branches: int = 1) -> Path:
+    """Two joints, 0.1 m links: it cannot reach a probe line 0.8 m long. With two branches, two such arms share
+    the root link (a two-armed robot: no tool link to guess)."""
     inertial = ('<inertial><mass value="0.1"/><inertia ixx="1e-4" ixy="0" ixz="0" iyy="1e-4" iyz="0" izz="1e-4"/>'
                 '</inertial>')
-    links = "".join(f'<link name="l{i}">{inertial}</link>' for i in range(3))
-    joints = "".join(f'<joint name="j{i}" type="revolute"><parent link="l{i}"/><child link="l{i + 1}"/>'
+    names = ["l0"] + [f"l{i}{b}" for b in "ab"[:branches] for i in (1, 2)]
+    links = "".join(f'<link name="{name}">{inertial}</link>' for name in names)
+    joints = "".join(f'<joint name="j{child}" type="revolute"><parent link="{parent}"/><child link="{child}"/>'
                      f'<origin xyz="0 0 0.1"/><axis xyz="0 1 0"/><limit lower="-1" upper="1" effort="1" velocity="1"/>'
-                     f'</joint>' for i in range(2))
+                     f'</joint>' for b in "ab"[:branches] for parent, child in (("l0", f"l1{b}"), (f"l1{b}", f"l2{b}")))
     path.write_text(f'<robot name="tiny">{links}{joints}</robot>')
     return path
 
@@ -118,6 +122,41 @@ def test_swap_small_robot_writes_a_loadable_urdf_with_probe_tip_and_copied_meshe
     assert summary["reach_fraction"] >= 0.97  # the same arm as urdf/hg_probe_arm.urdf
 
 
+@pytest.mark.parametrize("source, tool", [("ros_arm/urdf/ros_arm.urdf", "tool0"), ("gripper_arm.urdf", "hand")])
+def test_vendor_structures_swap_with_no_options_and_reach(tmp_path, source, tool):
+    """ros_arm: xacro output rooted at `world`, package:// meshes, continuous and in-chain fixed joints;
+    gripper_arm: root `base`, mimic fingers and a grasp frame as leaves, no link called a tool."""
+    out = tmp_path / "arm_probe.urdf"
+    result = swap_robot(ROBOTS / source, out, base=OUR_BASE, n_check=100, n_verify=200)
+    assert result.tool_link == tool and result.joints == 6
+    assert result.reach.fraction >= 0.95  # the same kinematics as urdf/hg_probe_arm.urdf
+    robot = load_urdf(out).robot
+    base = [j for j in robot.joints if j.parent == "world"]
+    assert len(base) == 1 and base[0].name == "world_to_base" and base[0].type == "fixed"
+    assert [link.name for link in robot.links].count("world") == 1
+    types = {j.name: j.type for j in robot.joints}
+    if source.startswith("ros_arm"):
+        assert types["joint_4"] == types["joint_6"] == "continuous" and types["forearm_fixed"] == "fixed"
+        assert 'filename="meshes/arm_probe/shoulder.stl"' in out.read_text()
+        assert (tmp_path / "meshes" / "arm_probe" / "shoulder.stl").is_file()
+    else:
+        assert next(j for j in robot.joints if j.name == "finger_right_joint").mimic.joint == "finger_left_joint"
+
+
+@pytest.mark.parametrize("source, tool, root", [("xarm/xarm6_robot.urdf", "link6", "link_base"),
+                                                ("xarm/xarm6_with_gripper.urdf", "xarm_gripper_base_link", "link_base"),
+                                                ("franka_panda/panda.urdf", "panda_hand", "panda_link0")])
+def test_pybullet_data_arms_get_a_tool_link_and_a_base_joint(source, tool, root):
+    """xArm roots itself at `world` (its joint becomes ours); grippers leave several leaves (their hand is taken)."""
+    path = resolve_urdf(source)
+    robot = load_urdf(path).robot
+    assert pick_tool_link(robot, path) == tool
+    set_base(robot, OUR_BASE)
+    base = [j for j in robot.joints if j.name == "world_to_base"]
+    assert len(base) == 1 and base[0].parent == "world" and base[0].child == root
+    assert np.allclose(base[0].origin, OUR_BASE.matrix())
+
+
 def test_search_picks_the_base_that_reaches(tmp_path):
     robot = load_urdf(bare_arm(tmp_path / "arm.urdf")).robot
     attach_probe(robot, "flange_link", 0.02)
@@ -163,7 +202,17 @@ def error_case(kind: str, tmp_path: Path) -> tuple[list[str], type, list[str]]:
     if kind == "missing_tool":
         return ["kuka_iiwa/model.urdf", "--tool-link", "nope"] + out, ValueError, ["model.urdf", "no link named 'nope'"]
     if kind == "ambiguous":
-        return ["franka_panda/panda.urdf"] + out, ValueError, ["panda.urdf", "panda_leftfinger", "panda_rightfinger"]
+        source = tiny_arm(tmp_path / "two_arms.urdf", branches=2)
+        return [str(source)] + out, ValueError, [str(source), "separate branches", "l2a, l2b"]
+    if kind == "mimic_in_chain":
+        return [str(ROBOTS / "mimic_wrist.urdf")] + out, ValueError, [
+            "mimic_wrist.urdf", "joint 'joint_6'", "mimics 'joint_4'", "--tool-link 'wrist_link'"]
+    if kind == "floating_world":
+        return [str(ROBOTS / "floating_world.urdf")] + out, ValueError, [
+            "floating_world.urdf", "floating joint 'world_joint'", "make one joint fixed"]
+    if kind == "xacro":
+        return [str(ROBOTS / "xacro_arm.urdf.xacro")] + out, ValueError, ["xacro_arm.urdf.xacro", "xacro file",
+                                                                          "xacrodoc"]
     if kind == "missing_mesh":
         source = bare_arm(tmp_path / "arm.urdf", mesh=True)
         (tmp_path / "parts" / "cover.stl").unlink()
@@ -175,7 +224,8 @@ def error_case(kind: str, tmp_path: Path) -> tuple[list[str], type, list[str]]:
     raise AssertionError(kind)
 
 
-KINDS = ["malformed", "missing_tool", "ambiguous", "missing_mesh", "unreachable"]
+KINDS = ["malformed", "missing_tool", "ambiguous", "missing_mesh", "unreachable", "mimic_in_chain", "floating_world",
+         "xacro"]
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -193,7 +243,7 @@ def test_errors_name_the_file_and_the_fault(kind, tmp_path):
 @pytest.mark.parametrize("kind", KINDS)
 def test_cli_errors_are_one_line_and_exit_non_zero(kind, tmp_path, capsys):
     args, _, fragments = error_case(kind, tmp_path)
-    assert load_script().main(args) == 1
+    assert load_script().main(args) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("swap_urdf.py: error: ") and len(err.splitlines()) == 1 and fragments[-1] in err
 
@@ -201,5 +251,5 @@ def test_cli_errors_are_one_line_and_exit_non_zero(kind, tmp_path, capsys):
 def test_cli_error_in_a_fresh_process_has_no_traceback(tmp_path):
     args, _, fragments = error_case("malformed", tmp_path)
     done = subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, timeout=60)
-    assert done.returncode == 1
+    assert done.returncode == 2
     assert "Traceback" not in done.stderr and fragments[-1] in done.stderr

@@ -66,6 +66,19 @@ class LatestCheckpoint(ModelCheckpoint):
         return super().state_key.replace(type(self).__qualname__, ModelCheckpoint.__qualname__, 1)
 
 
+class FinalValidation(pl.Callback):
+    """Validate after the last training step even when max_steps is not a multiple of val_check_interval, so the
+    best checkpoint and the validation curve see the final weights. Lightning validates when `should_stop` is set,
+    on every rank alike under DDP (the step count is the same everywhere)."""
+
+    def on_train_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs, batch,
+                           batch_idx: int) -> None:
+        interval = trainer.val_check_interval
+        if (trainer.max_steps > 0 and trainer.global_step >= trainer.max_steps and isinstance(interval, int)
+                and trainer.global_step % interval):
+            trainer.should_stop = True
+
+
 class PerProbeAccuracy(pl.Callback):
     """At test end: per_probe_accuracy.csv and .png in the run directory, the same logged to wandb, and the
     table printed. Accuracy after probe k is logged during evaluation as `val/acc@k` and `test/acc@k`.

@@ -14,8 +14,10 @@ import yaml
 
 from pytorch_lightning.callbacks import ModelCheckpoint
 from pytorch_lightning.cli import LightningArgumentParser, LightningCLI
+from pytorch_lightning.utilities.exceptions import MisconfigurationException
 
-from hg.lightning.callbacks import CosineLR, GradientDiagnostics, LatestCheckpoint, PerProbeAccuracy, RunDirSaveConfig, StdDecay, TrainingClock
+from hg.lightning.callbacks import (CosineLR, FinalValidation, GradientDiagnostics, LatestCheckpoint, PerProbeAccuracy,
+                                   RunDirSaveConfig, StdDecay, TrainingClock)
 from hg.lightning.data import ProbeDataModule
 from hg.lightning.module import HapticGlance
 from hg.lightning.viz import ProbeMaps
@@ -33,7 +35,74 @@ TRAINER_DEFAULTS = {
 }
 
 
+LIGHTNING_CKPT_NAMES = ("best", "last", "hpc", "registry")  # ckpt_path values Lightning resolves itself
+
+
+def one_line(message: str, limit: int = 400) -> str:
+    """A parser's message as one line: nested type errors span many lines and can run to pages."""
+    line = " ".join(str(message).split())
+    return line if len(line) <= limit else line[:limit - 3] + "..."
+
+
+class OneLineParser(LightningArgumentParser):
+    """Bad options or config files end in one `hg: error:` line, like every other bad input (exit code 2);
+    jsonargparse's usage screen is what --help is for. HG_TRACEBACK=1 keeps its own report."""
+
+    def error(self, message: str, ex: Exception | None = None):
+        if os.environ.get("HG_TRACEBACK") or not self.exit_on_error:
+            super().error(message, ex)
+        sys.stderr.write(f"hg: error: {one_line(message)}\n")
+        self.exit(2)
+
+
+def read_checkpoint(ckpt_path: str | None) -> dict | None:
+    """The checkpoint a subcommand was given, read as Lightning will read it (weights only), before anything else
+    happens: a missing or unreadable file fails here with its name. None for no path or a name Lightning resolves."""
+    if ckpt_path is None or str(ckpt_path) in LIGHTNING_CKPT_NAMES or "://" in str(ckpt_path):
+        return None
+    path = Path(ckpt_path)
+    if not path.is_file():
+        raise FileNotFoundError(f"ckpt_path={ckpt_path}: checkpoint file not found")
+    try:
+        saved = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # pickle, zip and torch errors of many types: the file is not a checkpoint
+        raise ValueError(f"ckpt_path={ckpt_path}: not a checkpoint PyTorch can read "
+                         f"({type(exc).__name__}: {one_line(exc, 120)})") from exc
+    if not isinstance(saved, dict) or "state_dict" not in saved:
+        raise ValueError(f"ckpt_path={ckpt_path}: no state_dict inside; was it written by `hg fit`?")
+    return saved
+
+
+def check_fits(saved: dict, ckpt_path: str, model: torch.nn.Module) -> None:
+    """A checkpoint of another composition fails before the run starts, naming the first weight that differs."""
+    weights = saved["state_dict"]
+    advice = "give the config it was trained with (config.yaml in its run directory)"
+    for name, tensor in model.state_dict().items():
+        if name not in weights:
+            raise ValueError(f"ckpt_path={ckpt_path}: written for another model: it has no '{name}'; {advice}")
+        if tuple(weights[name].shape) != tuple(tensor.shape):
+            raise ValueError(f"ckpt_path={ckpt_path}: written for another model: '{name}' has shape "
+                             f"{tuple(weights[name].shape)} there, {tuple(tensor.shape)} here; {advice}")
+
+
 class HapticCLI(LightningCLI):
+    """Every input is checked before the subcommand runs (the checkpoint file once parsed; the model, data and
+    Trainer when they are built; the checkpoint's fit to the model in `before_<subcommand>`), so bad input never
+    leaves a run directory, a wandb run or a checkpoint behind."""
+
+    checkpoint: dict | None = None
+
+    def parse_arguments(self, parser: LightningArgumentParser, args) -> None:
+        super().parse_arguments(parser, args)
+        if self.config.get("subcommand"):  # Lightning reads the checkpoint's hyperparameters next
+            self.checkpoint = read_checkpoint(self.config[self.config.subcommand].get("ckpt_path"))
+
+    def _check_ckpt_path(self) -> None:
+        if self.checkpoint is not None:
+            check_fits(self.checkpoint, self.config[self.subcommand].ckpt_path, self.model)
+
+    before_fit = before_validate = before_test = before_predict = _check_ckpt_path
+
     def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
         # best by val/acc; and, separately, the latest every N steps plus last.ckpt for resuming (Lightning only
         # refreshes last.ckpt when its callback saved, which a best-only callback does not do every time)
@@ -44,6 +113,7 @@ class HapticCLI(LightningCLI):
         parser.set_defaults({"last_checkpoint.save_last": True, "last_checkpoint.every_n_train_steps": 100,
                              "last_checkpoint.filename": "latest-step{step}",
                              "last_checkpoint.auto_insert_metric_name": False})
+        parser.add_lightning_class_args(FinalValidation, "final_validation")  # the last step is validated too
         parser.add_lightning_class_args(PerProbeAccuracy, "per_probe_accuracy")
         parser.add_lightning_class_args(ProbeMaps, "probe_maps")  # heat maps and confusion matrices at test end
         parser.add_lightning_class_args(TrainingClock, "training_clock")  # training time over resumed attempts
@@ -56,13 +126,28 @@ class HapticCLI(LightningCLI):
                               apply_on="instantiate")
 
 
+def check_config_files(argv: list[str]) -> None:
+    """A --config file that is not valid YAML, named with the line at fault (jsonargparse's own message names
+    neither the file nor the option)."""
+    pairs = [tuple(a.split("=", 1)) for a in argv if a.startswith("--config=")] + list(zip(argv, argv[1:]))
+    for flag, value in pairs:
+        path = Path(value)
+        if flag in ("--config", "-c") and path.is_file():
+            try:
+                yaml.safe_load(path.read_text())
+            except yaml.YAMLError as exc:
+                raise ValueError(f"--config {value}: not valid YAML ({one_line(exc, 200)})") from exc
+
+
 def cli(args: list[str] | None = None, run: bool = True) -> HapticCLI:
     """The CLI over `args`, or the command line when None. Given args are a script's own (main_job.py,
     reproduce_table1.py), not its command line: Lightning's warning about both is beside the point there."""
     os.environ.setdefault("WANDB_MODE", "offline")  # no internet here: runs are synced later with `wandb sync`
+    check_config_files(list(sys.argv[1:] if args is None else args))
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
         return HapticCLI(HapticGlance, ProbeDataModule, seed_everything_default=0, trainer_defaults=TRAINER_DEFAULTS,
+                         parser_class=OneLineParser,
                          save_config_callback=RunDirSaveConfig, save_config_kwargs={"save_to_log_dir": False,
                                                                                      "overwrite": True},
                          args=args, run=run)
@@ -98,10 +183,11 @@ def main() -> None:
     """Bad input ends in one line naming the field or file, and a non-zero exit (HG_TRACEBACK=1 for the wall)."""
     try:
         cli()
-    except (ValueError, FileNotFoundError, FloatingPointError) as exc:
+    except (ValueError, FileNotFoundError, FloatingPointError, MisconfigurationException) as exc:
         if os.environ.get("HG_TRACEBACK"):
             raise
-        print(f"hg: error: {exc}", file=sys.stderr)
+        where = "trainer: " if isinstance(exc, MisconfigurationException) else ""  # Lightning's own checks
+        print(f"hg: error: {where}{one_line(exc, 1000)}", file=sys.stderr)
         sys.exit(2)
 
 

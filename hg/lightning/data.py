@@ -17,6 +17,9 @@ from torch.utils.data import DataLoader, Dataset, IterableDataset
 
 from hg import planner
 from hg.sim import SPLITS, DEFAULT_URDF, PoseRegions, ProbeSimulator, Scene, SensorNoise, load_object_set, sample_episodes
+from hg.sim.client import BulletClient
+from hg.sim.poses import check_below_ground
+from hg.sim.robot import load_robot
 
 Batch = dict[str, torch.Tensor]
 
@@ -81,6 +84,10 @@ class ProbeDataModule(pl.LightningDataModule):
             raise FileNotFoundError(f"data.robot={robot}: URDF file not found")
         self.save_hyperparameters()
         self.object_set = load_object_set(objects)
+        check_below_ground(scene, self.object_set)  # here, not in setup: bad input must fail before a run exists
+        if mode == "arm":
+            with BulletClient() as client:
+                load_robot(client, robot)  # a URDF PyBullet cannot load, or without the tool link, fails here too
         self.regions = PoseRegions(scene, seed=eval_seed)
         self.scene, self.noise, self.n_probes = scene, noise, n_probes
 

@@ -140,7 +140,3 @@ class HapticGlanceVectorEnv(VectorEnv):
 
     def close_extras(self, **kwargs) -> None:
         self.episodes.sim.close()
-
-
-gymnasium.register("HapticGlance-v0", entry_point="hg.sim.gym_env:HapticGlanceEnv",
-                   vector_entry_point="hg.sim.gym_env:HapticGlanceVectorEnv", max_episode_steps=None)

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -10,6 +9,7 @@ import numpy as np
 import trimesh
 
 MESH_SUFFIXES = (".obj", ".stl")
+MAX_EXTENT_M = 5.0  # a mesh larger than this is in other units (millimetres, most often), not a buried object
 
 
 @dataclass(frozen=True)
@@ -31,7 +31,13 @@ def _recentred(mesh: trimesh.Trimesh, source: str) -> trimesh.Trimesh:
     if not np.isfinite(mesh.vertices).all():
         raise ValueError(f"{source}: mesh has non-finite vertex coordinates")
     if not mesh.is_watertight:
-        warnings.warn(f"{source}: mesh is not watertight; rays may pass through its holes", stacklevel=3)
+        open_edges = len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
+        raise ValueError(f"{source}: mesh is not watertight ({open_edges} open edges), so probes would pass through "
+                         f"its holes; close it first (trimesh.repair.fill_holes, or a boolean union with manifold3d)")
+    extent = float(mesh.extents.max())
+    if extent > MAX_EXTENT_M:
+        raise ValueError(f"{source}: mesh is {extent:g} units across, read as metres; objects here are tenths of a "
+                         f"metre: if it is in millimetres, scale it by 0.001 (mesh.apply_scale(0.001)) first")
     mesh = mesh.copy()
     mesh.apply_translation(-mesh.bounds.mean(axis=0))
     return mesh
@@ -64,6 +70,9 @@ def load_folder(folder: str | Path) -> ObjectSet:
             mesh = trimesh.load(path, force="mesh")
         except Exception as exc:  # trimesh raises many types for unreadable files
             raise ValueError(f"{path}: cannot read mesh ({exc})") from exc
+        if mesh.is_empty and path.stat().st_size > 0:
+            raise ValueError(f"{path}: no mesh read from its {path.stat().st_size} bytes; is it really an "
+                             f"{path.suffix.lower()[1:].upper()} file?")
         names.append(path.stem)
         meshes.append(_recentred(mesh, str(path)))
     return ObjectSet(folder.name, tuple(names), tuple(meshes))

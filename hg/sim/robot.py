@@ -61,13 +61,16 @@ def load_robot(client: BulletClient, urdf: str | Path, tool_link: str = TOOL_LIN
     if not path.is_file():
         raise FileNotFoundError(f"robot URDF {path}: file not found")
     try:
-        ET.parse(path)
+        root = ET.parse(path).getroot()
     except ET.ParseError as exc:
         raise ValueError(f"robot URDF {path}: malformed XML ({exc})") from exc
     try:
         body = client.loadURDF(str(path), useFixedBase=True, flags=pybullet.URDF_USE_INERTIA_FROM_FILE)
     except pybullet.error as exc:
-        raise ValueError(f"robot URDF {path}: PyBullet cannot load it ({exc}); check mesh paths") from exc
+        from hg.sim.urdf_tools import resolve_mesh  # here: urdf_tools builds on this module
+        for mesh in root.iter("mesh"):  # PyBullet only says it failed: name the file it could not find
+            resolve_mesh(mesh.get("filename", ""), path)
+        raise ValueError(f"robot URDF {path}: PyBullet cannot load it ({exc})") from exc
     links = {client.getJointInfo(body, j)[12].decode(): j for j in range(client.getNumJoints(body))}
     if tool_link not in links:
         raise ValueError(f"robot URDF {path}: no link named '{tool_link}' (links: {', '.join(links)})")

@@ -37,6 +37,7 @@ ROD_LINK, ROD_JOINT, TIP_JOINT = "probe_rod", "probe_mount", "probe_tip_joint"
 ROD_LENGTH, ROD_RADIUS, ROD_MASS = 0.25, 0.008, 0.2
 SEARCH_GRID = ReachGrid(n_y=5, n_dir=5)  # coarse: scores a base candidate in well under a second
 VISUALS = ("copy", "collision")
+MOVABLE = ("revolute", "continuous", "prismatic")
 LICENCE_NAMES = ("LICENSE", "LICENCE", "COPYING")
 
 
@@ -61,6 +62,10 @@ def load_urdf(path: str | Path) -> yourdfpy.URDF:
         raise ValueError(f"robot URDF {path}: malformed XML ({exc})") from exc
     if root.tag != "robot":
         raise ValueError(f"robot URDF {path}: the root element is <{root.tag}>, expected <robot>")
+    if is_xacro(path, root):
+        raise ValueError(f"robot URDF {path}: a xacro file, not a URDF (it has xacro macros or ${{...}} expressions); "
+                         f"expand it first with ROS's `xacro {path.name} > robot.urdf`, or without ROS "
+                         f"`pip install xacrodoc`, then swap robot.urdf")
     try:
         urdf = yourdfpy.URDF.load(str(path), build_scene_graph=False, load_meshes=False,
                                   filename_handler=yourdfpy.filename_handler_null)
@@ -78,7 +83,36 @@ def load_urdf(path: str | Path) -> yourdfpy.URDF:
     roots = [name for name in links if name not in {j.child for j in robot.joints}]
     if len(roots) != 1:
         raise ValueError(f"robot URDF {path}: expected one root link, found {len(roots)} ({', '.join(roots)})")
+    adopt_world_root(robot, path)
     return urdf
+
+
+XACRO_NAMESPACES = ("{http://www.ros.org/wiki/xacro}", "{http://ros.org/wiki/xacro}")
+
+
+def is_xacro(path: Path, root: ET.Element) -> bool:
+    """A xacro source (macros, properties, ${...}) rather than its expanded URDF: PyBullet cannot read it."""
+    if path.name.endswith(".xacro"):
+        return True
+    return any(e.tag.startswith(XACRO_NAMESPACES) or any("${" in v or "$(" in v for v in e.attrib.values())
+               for e in root.iter() if isinstance(e.tag, str))
+
+
+def adopt_world_root(robot: yourdfpy.Robot, path: Path) -> None:
+    """Many vendor URDFs (xArm, ROS descriptions) root the arm at a link `world` with one fixed joint: that joint
+    becomes our `world_to_base`, which the base placement then sets. Any other use of `world` is refused."""
+    names = {link.name for link in robot.links}
+    if WORLD_LINK not in names or any(j.name == BASE_JOINT for j in robot.joints):
+        return
+    if root_link(robot) != WORLD_LINK:
+        raise ValueError(f"robot URDF {path}: link '{WORLD_LINK}' is not the root, but hg roots the arm at its own "
+                         f"'{WORLD_LINK}' link: rename that link")
+    joints = [j for j in robot.joints if j.parent == WORLD_LINK]
+    if len(joints) != 1 or joints[0].type != "fixed":
+        held = ", ".join(f"'{j.child}' by a {j.type} joint '{j.name}'" for j in joints)
+        raise ValueError(f"robot URDF {path}: root link '{WORLD_LINK}' holds {held}; hg mounts the arm with one "
+                         f"fixed joint: remove the '{WORLD_LINK}' link and its joints, or make one joint fixed")
+    joints[0].name = BASE_JOINT
 
 
 def root_link(robot: yourdfpy.Robot) -> str:
@@ -94,17 +128,36 @@ def leaf_links(robot: yourdfpy.Robot) -> list[str]:
 
 
 def pick_tool_link(robot: yourdfpy.Robot, path: Path, tool_link: str | None = None) -> str:
-    """The named tool link, or the only leaf of the tree; an error lists the candidates otherwise."""
+    """The named tool link; else the tree's only leaf, or the last link all leaves share (a hand carrying fingers
+    and frames) when a movable joint lies above it; an error lists the leaves otherwise."""
     names = [link.name for link in robot.links]
     if tool_link is not None:
         if tool_link not in names:
             raise ValueError(f"robot URDF {path}: no link named '{tool_link}' (links: {', '.join(names)})")
         return tool_link
     leaves = leaf_links(robot)
-    if len(leaves) != 1:
-        raise ValueError(f"robot URDF {path}: {len(leaves)} leaf links, so the tool link is ambiguous; "
-                         f"pass --tool-link with one of: {', '.join(leaves)} (or any other link)")
-    return leaves[0]
+    if len(leaves) == 1:
+        return leaves[0]
+    paths = [[j.child for j in chain_joints(robot, leaf)] for leaf in leaves]
+    shared = [names[0] for names in zip(*paths) if len(set(names)) == 1]  # links every leaf hangs from
+    if shared and any(j.type != "fixed" for j in chain_joints(robot, shared[-1])):
+        return shared[-1]  # a gripper's base or a hand: the last link the fingers (or frames) share
+    raise ValueError(f"robot URDF {path}: {len(leaves)} leaf links on separate branches, so the tool link is "
+                     f"ambiguous; pass --tool-link with one of: {', '.join(leaves)} (or any other link)")
+
+
+def check_chain(robot: yourdfpy.Robot, path: Path, tool_link: str) -> None:
+    """The joints IK moves to place the tool must move on their own: PyBullet ignores <mimic>, and a floating or
+    planar joint is not an arm's joint. Mimic joints elsewhere (a gripper's fingers) do no harm."""
+    for joint in chain_joints(robot, tool_link):
+        if joint.mimic is not None:
+            raise ValueError(f"robot URDF {path}: joint '{joint.name}' between the root and the tool link "
+                             f"'{tool_link}' mimics '{joint.mimic.joint}', which PyBullet's IK ignores (it would "
+                             f"move the joint on its own); pass --tool-link '{joint.parent}' or a link above it")
+        if joint.type in ("floating", "planar"):
+            raise ValueError(f"robot URDF {path}: joint '{joint.name}' between the root and the tool link "
+                             f"'{tool_link}' is {joint.type}; an arm's joints are revolute, continuous, prismatic "
+                             f"or fixed: make it fixed or remove it")
 
 
 def mesh_geometries(robot: yourdfpy.Robot) -> Iterable[yourdfpy.Mesh]:
@@ -317,6 +370,9 @@ def write_urdf(robot: yourdfpy.Robot, out: Path, comments: Iterable[str] = ()) -
     """Write with yourdfpy, after leading comments (how the file was made, the source's licence notices)."""
     xml = yourdfpy.URDF(robot=robot, build_scene_graph=False, load_meshes=False,
                         filename_handler=yourdfpy.filename_handler_null).write_xml()  # else paths get rewritten
+    for joint in (j for j in robot.joints if j.mimic is not None):  # yourdfpy's writer drops <mimic>
+        etree.SubElement(xml.getroot().find(f"joint[@name='{joint.name}']"), "mimic", joint=joint.mimic.joint,
+                         multiplier=str(joint.mimic.multiplier), offset=str(joint.mimic.offset))
     body = etree.tostring(xml, pretty_print=True, encoding="unicode")
     notes = "".join(f"<!--{c if c.startswith(' ') else ' ' + c}{'' if c.endswith(' ') else ' '}-->\n"
                     for c in (c.replace("--", "- -") for c in comments))  # '--' may not appear in a comment
@@ -650,6 +706,7 @@ class SwapResult:
 
     out: Path
     tool_link: str
+    joints: int  # movable joints between the root and the tool link
     base: BasePlacement
     reach: ReachResult
     mesh_bytes: int
@@ -659,7 +716,8 @@ class SwapResult:
         """The script's last line: what a caller needs to use or check the new robot."""
         return {"reach_fraction": round(self.reach.fraction, 4), "n_requests": len(self.reach.ok),
                 "base_position": [round(v, 4) + 0.0 for v in (self.base.x, self.base.y, self.base.z)],
-                "base_rpy_deg": self.base.rpy_deg(), "tool_link": self.tool_link, "out": str(self.out)}
+                "base_rpy_deg": self.base.rpy_deg(), "tool_link": self.tool_link, "joints": self.joints,
+                "out": str(self.out)}
 
 
 def swap_robot(source: str | Path, out: str | Path, tool_link: str | None = None, base: BasePlacement | None = None,
@@ -675,6 +733,7 @@ def swap_robot(source: str | Path, out: str | Path, tool_link: str | None = None
     urdf = load_urdf(path)
     robot = urdf.robot
     tool = pick_tool_link(robot, path, tool_link)
+    check_chain(robot, path, tool)
     check_meshes(robot, path)
     offset = mount_offset(urdf, path, tool) if mount is None else mount
     attach_probe(robot, tool, offset)
@@ -711,7 +770,8 @@ def swap_robot(source: str | Path, out: str | Path, tool_link: str | None = None
 
     reach = measure_reach(out, scene, n_verify, seed + 2)
     title = f"Reach report for {out} ({tool} + {ROD_LENGTH} m probe rod), {n_verify} random requests:"
-    result = SwapResult(out, tool, base, reach, mesh_bytes, reach_report(reach, scene, title, base))
+    joints = sum(j.type in MOVABLE for j in chain_joints(robot, tool))
+    result = SwapResult(out, tool, joints, base, reach, mesh_bytes, reach_report(reach, scene, title, base))
     if reach.fraction < min_reach:
         log(result.report)
         out.unlink()
