@@ -37,10 +37,11 @@ import torch
 
 from hg.planner import CandidateGrid, LibraryRecipe, evaluate, save_teacher
 from hg.provenance import repo_path
-from hg.sim import DEFAULT_URDF, MODES, SPLITS, PoseRegions, Scene, SensorNoise, load_object_set, sample_episodes
+from hg.sim import DEFAULT_URDF, MODES, SPLITS, Scene, SensorNoise, load_object_set, sample_episodes
+from hg.sim.heldout import REGIONS, Regions, make_regions
 
 
-def scored_episodes(regions: PoseRegions, split: str, episodes: int, n_classes: int, seed: int,
+def scored_episodes(regions: Regions, split: str, episodes: int, n_classes: int, seed: int,
                     table: bool) -> tuple[np.ndarray, np.ndarray]:
     """The classes and poses scored: the tables' own episodes of the split (EvalEpisodes, as the data module draws
     them with the regions' seed) or `episodes` drawn with `seed`."""
@@ -58,7 +59,9 @@ def main() -> None:
     parser.add_argument("--robot", type=Path, default=DEFAULT_URDF, help="the arm's URDF (--mode arm)")
     parser.add_argument("--scene", type=json.loads, default={}, help="hg.sim.Scene fields as JSON, e.g. "
                         "'{\"probe_length\": 0.5}' (default: the default scene)")
-    parser.add_argument("--eval-seed", type=int, default=0, help="the pose regions' seed (data.eval_seed)")
+    parser.add_argument("--eval-seed", type=int, default=0, help="the evaluation episodes' seed (data.eval_seed)")
+    parser.add_argument("--regions", choices=sorted(REGIONS), default="across_line",
+                        help="the held-out protocol (data.regions); the archived teacher files used cells")
     parser.add_argument("--episodes", type=int, default=1024)
     parser.add_argument("--split", choices=SPLITS, default="val")
     parser.add_argument("--table-episodes", action="store_true",
@@ -140,7 +143,7 @@ def main() -> None:
     torch.set_num_threads(1)
     start = time.time()
     object_set = load_object_set(args.objects)
-    regions = PoseRegions(scene, seed=args.eval_seed)
+    regions = make_regions(args.regions, scene, args.eval_seed)
     labels, poses = scored_episodes(regions, args.split, args.episodes, len(object_set), args.seed, args.table_episodes)
     result = evaluate(object_set, labels, poses, regions, robot=args.robot, mode=args.mode, noise=noise, grid=grid,
                       recipe=recipe, bin=args.bin, n_probes=args.n_probes, probers=probers, seed=args.seed)

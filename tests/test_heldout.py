@@ -68,8 +68,10 @@ def test_the_pose_maps_show_the_same_world(sets):
 def test_new_regions_hold_no_image_of_a_training_pose(sets):
     """On both sets, after the objects' turns, shifts by up to 5 place steps and the mirror: no validation or test
     pose is an image of a training pose, and each is at least 2 cm across the line from every training position."""
-    regions = AcrossLineRegions()
-    assert regions.gap_m == pytest.approx(0.025)
+    from hg.lightning.data import ProbeDataModule
+
+    regions = ProbeDataModule(mode="ideal").regions  # the default protocol of every run
+    assert isinstance(regions, AcrossLineRegions) and regions.gap_m == pytest.approx(0.025)
     for objects, symmetries in sets.values():
         for split in ("val", "test"):
             labels, poses = sample_episodes(regions, split, 256, len(objects), np.random.default_rng(1))
@@ -147,3 +149,39 @@ def test_new_regions_reject_bad_bands_and_sample_their_bands():
     train = regions.sample("train", 2000, np.random.default_rng(0))
     assert (regions.split_of(train) == TRAIN).all()
     assert (np.abs(train[:, 0]) > 0.1).mean() == pytest.approx(0.5, abs=0.05)  # both bands are 2.5 cm wide
+
+
+def test_a_training_library_keeps_no_copy_outside_the_training_region(sets):
+    """A library drawn with shifts and mirror images keeps exactly the copies that show training poses under every
+    turn of their object (counted here from the pose maps themselves), and every drawn episode: on hg4 in the old
+    cells regions, where copies do leave (the count falls), and in the new regions, where only the Y range drops."""
+    from hg.planner import CandidateGrid, LibraryRecipe
+    from hg.sim import ProbeSimulator
+    from hg.sim.heldout import augmented
+
+    objects, symmetries = sets["hg4"]
+    grid, recipe = CandidateGrid(5, 0.5, (1.0,)), LibraryRecipe(size=96, shifts=2, mirror=True, seed=5)
+    step = place_step_m(Scene(), places=5)
+    for regions in (PoseRegions(), AcrossLineRegions()):
+        labels, poses = sample_episodes(regions, "train", recipe.size, len(objects),
+                                        np.random.default_rng(recipe.seed + 1))  # as LibraryRecipe.draw draws
+        expected, copies = 0, 0
+        for k in range(-recipe.shifts, recipe.shifts + 1):
+            for flip in (False, True):
+                shown = augmented(poses, labels, symmetries, regions.scene, k * step, flip)
+                ok = (shown[:, 1] >= regions.scene.object_y[0]) & (shown[:, 1] <= regions.scene.object_y[1])
+                copies += int(ok.sum())
+                if k or flip:
+                    for i in np.flatnonzero(ok):
+                        s = symmetries[labels[i]]
+                        turns = [0.0] if s.turn_order is None and isinstance(regions, AcrossLineRegions) else (
+                            np.arange(72) * 5.0 if s.turn_order is None else np.arange(s.turn_order) * s.turn_deg)
+                        ok[i] = all(regions.split_of(turned(shown[i:i + 1], s, d))[0] == TRAIN for d in turns)
+                expected += int(ok.sum())
+        with ProbeSimulator("hg4", batch_size=96, mode="ideal") as sim:
+            readings, library_labels, _ = recipe.draw(sim, regions, grid)
+        assert len(readings) == len(library_labels) == expected, type(regions).__name__
+        if isinstance(regions, PoseRegions):
+            assert expected < 0.8 * copies  # the old regions: many copies reach held-out cells, and are dropped
+        else:
+            assert expected == copies  # the new regions: shifts and mirrors keep the distance across the line

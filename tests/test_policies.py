@@ -270,7 +270,7 @@ def test_candidate_choice_without_the_encoder_reads_the_readings_only(sim, batch
 @pytest.fixture(scope="module")
 def teacher(sim):
     """16 of the planner's episodes (10 probes each) and what its requests read, in ideal mode."""
-    data = ProbeDataModule(mode="ideal", n_probes=10)
+    data = ProbeDataModule(mode="ideal", n_probes=10, regions="cells")  # where the archived teacher was planned
     episodes = data.load_teacher([str(TEACHER)])
     labels, poses, requests = (episodes[k][:16] for k in ("labels", "poses", "requests"))
     out = rollout(sim, LineScan(Dims(32, 10, 4)), labels, poses, 0, 10, 2.0, requests=requests)

@@ -69,7 +69,8 @@ def test_components_that_mirror_episodes_refuse_an_object_set_with_chiral_object
     on pyb10 (four chiral blobs) they are refused, naming the classes; on hg4 they run."""
     from hg.lightning.cli import cli
     from hg.planner import CandidateGrid, LibraryRecipe
-    from hg.sim import PoseRegions, ProbeSimulator
+    from hg.sim import ProbeSimulator
+    from hg.sim.heldout import AcrossLineRegions
 
     pyb10 = str(PYB10)
     args = ["--config", "configs/side_scan.yaml", "--config", "configs/parts/touch_sets.yaml", "--config",
@@ -77,7 +78,7 @@ def test_components_that_mirror_episodes_refuse_an_object_set_with_chiral_object
     with pytest.raises(ValueError, match=r"TouchSetClassifier\(mirror=true\): .*blob_002"):
         cli(["fit", *args, "--data.objects", pyb10, "--trainer.max_steps", "1"])
     with ProbeSimulator(pyb10, batch_size=8, mode="ideal") as sim, pytest.raises(ValueError, match="blob_013"):
-        LibraryRecipe(size=8, mirror=True).draw(sim, PoseRegions(), CandidateGrid())
+        LibraryRecipe(size=8, mirror=True).draw(sim, AcrossLineRegions(), CandidateGrid())
     with ProbeSimulator("hg4", batch_size=8, mode="ideal") as sim:
-        readings, labels, _ = LibraryRecipe(size=8, mirror=True).draw(sim, PoseRegions(), CandidateGrid())
+        readings, labels, _ = LibraryRecipe(size=8, mirror=True).draw(sim, AcrossLineRegions(), CandidateGrid())
     assert len(readings) == 16 and len(labels) == 16  # each episode and its mirror image

@@ -16,15 +16,16 @@ import torch
 from torch.utils.data import DataLoader, Dataset, IterableDataset
 
 from hg import planner
-from hg.sim import SPLITS, DEFAULT_URDF, PoseRegions, ProbeSimulator, Scene, SensorNoise, load_object_set, sample_episodes
+from hg.sim import SPLITS, DEFAULT_URDF, ProbeSimulator, Scene, SensorNoise, load_object_set, sample_episodes
 from hg.sim.client import BulletClient
+from hg.sim.heldout import Regions, make_regions
 from hg.sim.poses import check_below_ground
 from hg.sim.robot import load_robot
 
 Batch = dict[str, torch.Tensor]
 
 
-def episode_batch(regions: PoseRegions, split: str, size: int, n_classes: int, seed: list[int]) -> Batch:
+def episode_batch(regions: Regions, split: str, size: int, n_classes: int, seed: list[int]) -> Batch:
     """One batch of episodes, a pure function of its seed."""
     rng = np.random.default_rng(seed)
     labels, poses = sample_episodes(regions, split, size, n_classes, rng)
@@ -35,7 +36,7 @@ def episode_batch(regions: PoseRegions, split: str, size: int, n_classes: int, s
 class TrainEpisodes(IterableDataset):
     """Endless training batches; batch i of rank r is seeded by (seed, r, i), starting at `start`."""
 
-    def __init__(self, regions: PoseRegions, n_classes: int, batch_size: int, seed: int, rank: int, start: int) -> None:
+    def __init__(self, regions: Regions, n_classes: int, batch_size: int, seed: int, rank: int, start: int) -> None:
         self.regions, self.n_classes, self.batch_size = regions, n_classes, batch_size
         self.seed, self.rank, self.start = seed, rank, start
 
@@ -49,7 +50,7 @@ class TrainEpisodes(IterableDataset):
 class EvalEpisodes(Dataset):
     """A fixed episode set of a held-out split, served in batches (one item = one batch)."""
 
-    def __init__(self, regions: PoseRegions, split: str, n_episodes: int, batch_size: int, n_classes: int,
+    def __init__(self, regions: Regions, split: str, n_episodes: int, batch_size: int, n_classes: int,
                  seed: int) -> None:
         sizes = [min(batch_size, n_episodes - lo) for lo in range(0, n_episodes, batch_size)]
         code = SPLITS.index(split)
@@ -65,14 +66,17 @@ class EvalEpisodes(Dataset):
 class ProbeDataModule(pl.LightningDataModule):
     """Object set, robot, scene and episode sets: everything about the world the probes are made in.
 
-    `seed` drives the training episodes (the CLI links it to seed_everything); `eval_seed` fixes the held-out
-    pose regions and the val/test episodes, so models trained with different seeds meet the same test set.
+    `seed` drives the training episodes (the CLI links it to seed_everything); `eval_seed` fixes the val/test
+    episodes (and the `cells` regions' draw), so models trained with different seeds meet the same test set.
+    `regions` names the held-out protocol (hg.sim.heldout.make_regions): `across_line`, bands of the distance across
+    the probe line closed under the objects' symmetries and the library's augmentations (docs/benchmark.md), or
+    `cells`, the regions the archived hg4 rows and their teacher files were made in.
     """
 
     def __init__(self, objects: str = "hg4", robot: str = str(DEFAULT_URDF), mode: str = "arm",
                  scene: Scene = Scene(), noise: SensorNoise = SensorNoise(), n_probes: int = 10,
                  batch_size: int = 64, eval_batch_size: int = 256, val_episodes: int = 1024,
-                 test_episodes: int = 2048, seed: int = 0, eval_seed: int = 0) -> None:
+                 test_episodes: int = 2048, seed: int = 0, eval_seed: int = 0, regions: str = "across_line") -> None:
         super().__init__()
         for name, value in (("n_probes", n_probes), ("batch_size", batch_size), ("eval_batch_size", eval_batch_size),
                             ("val_episodes", val_episodes), ("test_episodes", test_episodes)):
@@ -88,7 +92,7 @@ class ProbeDataModule(pl.LightningDataModule):
         if mode == "arm":
             with BulletClient() as client:
                 load_robot(client, robot)  # a URDF PyBullet cannot load, or without the tool link, fails here too
-        self.regions = PoseRegions(scene, seed=eval_seed)
+        self.regions = make_regions(regions, scene, eval_seed)
         self.scene, self.noise, self.n_probes = scene, noise, n_probes
 
     @property
@@ -129,5 +133,6 @@ class ProbeDataModule(pl.LightningDataModule):
 
     def describe(self) -> dict:
         """What a results file should record about the world."""
-        return {"objects": self.object_set.name, "classes": list(self.class_names), "mode": self.hparams.mode,
+        return {"objects": self.object_set.name, "classes": list(self.class_names), "regions": self.regions.meta(),
+                "eval_seed": self.hparams.eval_seed, "mode": self.hparams.mode,
                 "robot": self.hparams.robot, "scene": asdict(self.scene), "noise": asdict(self.noise)}

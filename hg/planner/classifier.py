@@ -15,7 +15,7 @@ import torch
 from torch import Tensor, nn
 
 from hg.planner.library import MISS, CandidateGrid, LibraryRecipe
-from hg.sim.poses import PoseRegions
+from hg.sim.heldout import Regions
 from hg.sim.simulator import ProbeSimulator, SensorNoise
 
 # (k, log_w (B, L), used (B, C) bool) -> (B,) the candidates of probe k, given the library's log weights after the
@@ -79,7 +79,7 @@ class LibraryClassifier(nn.Module):
         self.noise, self.probe_length = noise, probe_length
 
     @classmethod
-    def build(cls, sim: ProbeSimulator, regions: PoseRegions, grid: CandidateGrid, recipe: LibraryRecipe,
+    def build(cls, sim: ProbeSimulator, regions: Regions, grid: CandidateGrid, recipe: LibraryRecipe,
               noise: SensorNoise = SensorNoise()) -> "LibraryClassifier":
         """The classifier over the library `recipe` draws, read by `sim` (ideal mode) with `grid`'s candidates,
         naming the readings of a sensor with faults `noise`; positions in units of the pose range's half-width."""

@@ -20,7 +20,7 @@ import torch
 from hg.planner.classifier import Choose, LibraryClassifier
 from hg.planner.library import MISS, CandidateGrid, LibraryRecipe, readings
 from hg.sim.objects import ObjectSet
-from hg.sim.poses import PoseRegions
+from hg.sim.heldout import Regions
 from hg.sim.robot import DEFAULT_URDF
 from hg.sim.scene import Scene
 from hg.sim.simulator import ProbeSimulator, SensorNoise
@@ -172,7 +172,7 @@ class Evaluation:
     library_episodes: int
 
 
-def evaluate(objects: str | Path | ObjectSet, labels: np.ndarray, poses: np.ndarray, regions: PoseRegions, *,
+def evaluate(objects: str | Path | ObjectSet, labels: np.ndarray, poses: np.ndarray, regions: Regions, *,
              robot: str | Path = DEFAULT_URDF, mode: str = "ideal", noise: SensorNoise = SensorNoise(),
              grid: CandidateGrid = CandidateGrid(), recipe: LibraryRecipe = LibraryRecipe(), bin: float = 0.01,
              n_probes: int = 10, probers: tuple[str, ...] = ("planner",), seed: int = 0) -> Evaluation:

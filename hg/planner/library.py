@@ -7,14 +7,16 @@ the objects enter it.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from hg.sim.poses import SPLITS, PoseRegions, sample_episodes
+from hg.sim.heldout import Regions, drop_held_out
+from hg.sim.poses import SPLITS, sample_episodes
 from hg.sim.scene import candidate_requests, mirrored_directions
 from hg.sim.simulator import ProbeSimulator
-from hg.sim.symmetry import require_mirror
+from hg.sim.symmetry import Symmetry, object_symmetries, require_mirror
 
 MISS = -1.0  # the reading of a probe that touched nothing
 
@@ -89,7 +91,7 @@ class LibraryRecipe:
         return cls(size or meta["library"], meta["library_split"], meta["shifts"], meta["mirror"],
                    meta.get("library_seed", meta["seed"]), meta["sigma"], meta["mismatch"])
 
-    def draw(self, sim: ProbeSimulator, regions: PoseRegions, grid: CandidateGrid
+    def draw(self, sim: ProbeSimulator, regions: Regions, grid: CandidateGrid
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(L', C) readings, (L',) classes and (L', 2) object positions of the library (library_readings). `sim` must
         probe in ideal mode, as every library is read."""
@@ -100,8 +102,9 @@ class LibraryRecipe:
             require_mirror(sim.objects, "the library's mirror images (LibraryRecipe.mirror)")
         labels, poses = sample_episodes(regions, self.split, self.size, len(sim.classes),
                                         np.random.default_rng(self.seed + 1))
+        confine = (regions, object_symmetries(sim.objects)) if self.split == "train" else None
         return library_readings(sim, labels, poses, grid.places, grid.span, list(grid.leans), self.shifts,
-                                self.mirror, list(grid.along_leans))
+                                self.mirror, list(grid.along_leans), confine)
 
 
 def readings(sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray, candidates: np.ndarray,
@@ -123,7 +126,8 @@ def readings(sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray, candida
 
 
 def library_readings(sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray, places: int, span: float,
-                     leans: list[float], shifts: int, mirror: bool, along_leans: list[float] = ()
+                     leans: list[float], shifts: int, mirror: bool, along_leans: list[float] = (),
+                     confine: tuple[Regions, Sequence[Symmetry]] | None = None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(L', C) readings of the candidates, (L',) classes and (L', 2) object positions (x across the line from it, y
     along it; m) of the library: its episodes as drawn, and with `shifts`
@@ -131,8 +135,11 @@ def library_readings(sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray,
     and with `mirror` mirrored across the line too. The ground is alike all along the line, so an object moved one
     step reads at each place what it read one place back; and the mirror image of an episode is an episode whose
     leaning probes swap sides only if every shape is its own mirror image across its x = 0 plane (hg4's are): use
-    `mirror` for such object sets alone. Symmetries of the world, not poses of another split: with them a training
-    library reaches positions its split never holds (the held-out cells)."""
+    `mirror` for such object sets alone. Symmetries of the world, not poses of another split; but with regions that
+    are not closed under them (the `cells` regions) a training library reaches poses its split never holds. With
+    `confine` (regions, the objects' symmetries), every moved or mirrored copy that shows a pose outside the training
+    region under some turn of its object is dropped (hg.sim.heldout.drop_held_out); the drawn episodes stay, being
+    training poses (that a turn of the object may show a held-out pose is the regions' fault: the `cells` regions)."""
     step = 2 * span / (places - 1) if places > 1 else 0.0
     # the same places, `shifts` more each way
     wide = candidate_requests(places + 2 * shifts, span + shifts * step, leans, along_leans)
@@ -143,16 +150,19 @@ def library_readings(sim: ProbeSimulator, labels: np.ndarray, poses: np.ndarray,
     parts, part_labels, part_positions = [], [], []
     for j in range(-shifts, shifts + 1):  # the object moved j steps: it reads at place p what it read at p - j
         y = poses[:, 1] + j * metres
-        keep = (y >= sim.scene.object_y[0]) & (y <= sim.scene.object_y[1])
-        view = full[keep, shifts - j:shifts - j + places]
+        in_range = (y >= sim.scene.object_y[0]) & (y <= sim.scene.object_y[1])
         for side, directions in zip((1, -1), [slice(None)] + [swap] * mirror):  # the mirror image: x across -> -x
-            parts.append(view[..., directions].reshape(int(keep.sum()), -1))
+            keep = in_range.copy()
+            if confine is not None and (j or side < 0):  # the drawn episodes are training poses as they are
+                keep[in_range] = ~drop_held_out(poses[in_range], labels[in_range], *confine, shift_m=j * metres,
+                                                mirror=side < 0)
+            parts.append(full[keep, shifts - j:shifts - j + places][..., directions].reshape(int(keep.sum()), -1))
             part_labels.append(labels[keep])
             part_positions.append(np.stack([side * (poses[keep, 0] - sim.scene.probe_x), y[keep]], 1))
     return np.concatenate(parts), np.concatenate(part_labels), np.concatenate(part_positions)
 
 
-def teacher_library(meta: dict, sim: ProbeSimulator, regions: PoseRegions, n_classes: int,
+def teacher_library(meta: dict, sim: ProbeSimulator, regions: Regions, n_classes: int,
                     library: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(L', C) readings, (L',) classes and (L', 2) positions (library_readings) of the library a teacher file's
     planner read (its meta: library split, size, shifts, mirror, seed; `library` episodes in place of its size if

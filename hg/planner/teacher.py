@@ -19,7 +19,8 @@ import torch
 from hg.atomic import write_atomic
 from hg.planner.library import CandidateGrid, LibraryRecipe
 from hg.provenance import commit
-from hg.sim.poses import SPLITS, PoseRegions
+from hg.sim.heldout import Regions
+from hg.sim.poses import SPLITS
 from hg.sim.scene import Scene
 from hg.sim.simulator import SensorNoise
 
@@ -42,7 +43,7 @@ def fault_rate(noise: SensorNoise) -> float:
 
 
 def save_teacher(path: str | Path, labels: np.ndarray, poses: np.ndarray, requests: np.ndarray, *,
-                 object_set_name: str, classes: tuple[str, ...], regions: PoseRegions, robot: str | Path, mode: str,
+                 object_set_name: str, classes: tuple[str, ...], regions: Regions, robot: str | Path, mode: str,
                  noise: SensorNoise, seed: int, grid: CandidateGrid, recipe: LibraryRecipe, bin: float,
                  faults: np.ndarray | None = None, summary: dict | None = None) -> dict:
     """Write a teacher file in one atomic write: the planner's episodes (labels (E,), poses (E, 6)), the requests it
@@ -59,7 +60,7 @@ def save_teacher(path: str | Path, labels: np.ndarray, poses: np.ndarray, reques
                          f"{None if faults is None else faults.shape}, expected "
                          f"{requests.shape[:2] + (2,) if rate else None}")
     meta = {"schema": SCHEMA, "objects": object_set_name, "classes": list(classes), "scene": asdict(regions.scene),
-            "eval_seed": regions.seed, "regions": regions_meta(regions), "robot": str(robot), "mode": mode,
+            "eval_seed": regions.seed, "regions": regions.meta(), "robot": str(robot), "mode": mode,
             "noise": rate, "sensor": asdict(noise), "seed": seed, "episodes": e, "n_probes": requests.shape[1],
             **grid.meta(), **recipe.meta(), "bin": bin, "commit": commit(("hg", "scripts")), "summary": summary}
     buffer = io.BytesIO()
@@ -67,11 +68,6 @@ def save_teacher(path: str | Path, labels: np.ndarray, poses: np.ndarray, reques
                         meta=np.array(json.dumps(meta)), **({} if faults is None else {"faults": faults}))
     write_atomic(path, buffer.getvalue())
     return meta
-
-
-def regions_meta(regions: PoseRegions) -> dict:
-    """How the pose regions cut the pose space (their seed is `eval_seed`)."""
-    return {"cells": list(regions.cells), "held_out_positions": regions.held_out_positions}
 
 
 def read_meta(path: str | Path) -> dict:
@@ -90,7 +86,7 @@ def read_meta(path: str | Path) -> dict:
     return meta
 
 
-def load_teacher(paths: list[str | Path], *, object_set_name: str, scene: Scene, regions: PoseRegions,
+def load_teacher(paths: list[str | Path], *, object_set_name: str, scene: Scene, regions: Regions,
                  n_probes: int, noise: SensorNoise = SensorNoise()) -> dict[str, torch.Tensor | None]:
     """A teacher's episodes for a policy to copy: the classes, poses and requests of the files, concatenated, and
     the (E, N, 2) faults its probes read with ("faults"; None without sensor faults). Refuses a file made for another
@@ -116,7 +112,7 @@ def load_teacher(paths: list[str | Path], *, object_set_name: str, scene: Scene,
             labels, poses, requests = f["labels"], f["poses"], f["requests"]
             faults = f["faults"] if "faults" in f.files else None
         expected = json.loads(json.dumps({"objects": object_set_name, "eval_seed": regions.seed, "noise": rate,
-                                          "scene": asdict(scene), "regions": regions_meta(regions),
+                                          "scene": asdict(scene), "regions": regions.meta(),
                                           "sensor": asdict(noise)}))  # as the meta holds them: tuples as lists
         if meta.get("library_split", "train") != "train":
             raise ValueError(f"{path}: teacher meta library_split={meta['library_split']!r}: its planner weighed "

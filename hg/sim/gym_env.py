@@ -16,7 +16,8 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from hg.sim.poses import PoseRegions, sample_episodes
+from hg.sim.heldout import make_regions
+from hg.sim.poses import sample_episodes
 from hg.sim.robot import DEFAULT_URDF
 from hg.sim.scene import Scene
 from hg.sim.simulator import ProbeSimulator, SensorNoise
@@ -37,11 +38,11 @@ class _Episodes:
     """What both environments share: the simulator, the pose regions and the episode bookkeeping."""
 
     def __init__(self, num_envs: int, objects: str | Path, n_probes: int, split: str, mode: str, robot: str | Path,
-                 scene: Scene, noise: SensorNoise, classifier: Classifier | None, eval_seed: int) -> None:
+                 scene: Scene, noise: SensorNoise, classifier: Classifier | None, eval_seed: int, regions: str) -> None:
         if n_probes < 1:
             raise ValueError(f"n_probes={n_probes}: must be >= 1")
         self.sim = ProbeSimulator(objects, num_envs, scene, mode, robot, noise=noise)
-        self.regions = PoseRegions(scene, seed=eval_seed)
+        self.regions = make_regions(regions, scene, eval_seed)
         self.n_probes, self.split, self.classifier = n_probes, split, classifier
         self.requests = np.zeros((num_envs, n_probes, 4), np.float32)
         self.points = np.zeros((num_envs, n_probes, 4), np.float32)
@@ -80,8 +81,9 @@ class HapticGlanceEnv(gymnasium.Env):
 
     def __init__(self, objects: str | Path = "hg4", n_probes: int = 10, split: str = "train", mode: str = "arm",
                  robot: str | Path = DEFAULT_URDF, scene: Scene = Scene(), noise: SensorNoise = SensorNoise(),
-                 classifier: Classifier | None = None, eval_seed: int = 0) -> None:
-        self.episodes = _Episodes(1, objects, n_probes, split, mode, robot, scene, noise, classifier, eval_seed)
+                 classifier: Classifier | None = None, eval_seed: int = 0, regions: str = "across_line") -> None:
+        self.episodes = _Episodes(1, objects, n_probes, split, mode, robot, scene, noise, classifier, eval_seed,
+                                  regions)
         self.observation_space = observation_space(n_probes)
         self.action_space = spaces.Box(-1.0, 1.0, (4,), np.float32)
 
@@ -109,9 +111,11 @@ class HapticGlanceVectorEnv(VectorEnv):
 
     def __init__(self, num_envs: int = 8, objects: str | Path = "hg4", n_probes: int = 10, split: str = "train",
                  mode: str = "arm", robot: str | Path = DEFAULT_URDF, scene: Scene = Scene(),
-                 noise: SensorNoise = SensorNoise(), classifier: Classifier | None = None, eval_seed: int = 0) -> None:
+                 noise: SensorNoise = SensorNoise(), classifier: Classifier | None = None, eval_seed: int = 0,
+                 regions: str = "across_line") -> None:
         self.num_envs = num_envs
-        self.episodes = _Episodes(num_envs, objects, n_probes, split, mode, robot, scene, noise, classifier, eval_seed)
+        self.episodes = _Episodes(num_envs, objects, n_probes, split, mode, robot, scene, noise, classifier, eval_seed,
+                                  regions)
         self.single_observation_space = observation_space(n_probes)
         self.single_action_space = spaces.Box(-1.0, 1.0, (4,), np.float32)
         self.observation_space = batch_space(self.single_observation_space, num_envs)

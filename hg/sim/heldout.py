@@ -1,4 +1,4 @@
-"""Held-out pose regions closed under the objects' symmetries and the components' augmentations (opt-in).
+"""Held-out pose regions closed under the objects' symmetries and the components' augmentations (the default).
 
 A training episode moved along the probe line by whole candidate-place steps, or mirrored across the line, or an
 object turned by one of its symmetries (hg.sim.symmetry), shows the same world as another pose: a held-out region
@@ -18,7 +18,7 @@ from typing import ClassVar, Protocol
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 
-from hg.sim.poses import SPLITS, rotation_matrices
+from hg.sim.poses import SPLITS, PoseRegions, rotation_matrices
 from hg.sim.scene import Scene
 from hg.sim.symmetry import Symmetry, mirror_matrix, turn_matrix
 
@@ -32,11 +32,17 @@ MIRROR_X = np.diag([-1.0, 1.0, 1.0])
 
 
 class Regions(Protocol):
-    """What the measures here need of pose regions: a scene and the split index of poses (PoseRegions too)."""
+    """Pose regions (AcrossLineRegions, PoseRegions): a scene, the seed of the evaluation episodes drawn from them,
+    the split index of poses, a sampler of a split's poses and how they cut the pose space (for teacher files)."""
 
     scene: Scene
+    seed: int
 
     def split_of(self, poses: np.ndarray) -> np.ndarray: ...
+
+    def sample(self, split: str, n: int, rng: np.random.Generator) -> np.ndarray: ...
+
+    def meta(self) -> dict: ...
 
 
 @dataclass(frozen=True)
@@ -46,6 +52,7 @@ class AcrossLineRegions:
     in every split, so shifts along the line, the mirror across it and turns of the object keep every split."""
 
     scene: Scene = field(default_factory=Scene)
+    seed: int = 0  # of the evaluation episodes drawn from these regions (data.eval_seed); the bands do not use it
     bands: tuple[Band, ...] = DEFAULT_BANDS
     heading_free: ClassVar[bool] = True  # split_of does not read the heading
 
@@ -62,6 +69,10 @@ class AcrossLineRegions:
         if missing := set(SPLITS) - {split for _, _, split in bands}:
             raise ValueError(f"heldout bands={self.bands}: no band for {sorted(missing)}")
         object.__setattr__(self, "bands", bands)
+
+    def meta(self) -> dict:
+        """How the regions cut the pose space, as teacher files record it (their seed is `eval_seed`)."""
+        return {"across_line": [list(band) for band in self.bands]}
 
     @property
     def gap_m(self) -> float:
@@ -91,6 +102,17 @@ class AcrossLineRegions:
         side = np.where(rng.random(n) < 0.5, -1.0, 1.0)
         poses[:, 0] = self.scene.probe_x + side * (bands[pick, 0] + unit[:, 0] * widths[pick])
         return poses
+
+
+REGIONS = {"across_line": AcrossLineRegions, "cells": PoseRegions}  # cells: the hg4 research's regions (archive)
+
+
+def make_regions(kind: str, scene: Scene, seed: int = 0) -> AcrossLineRegions | PoseRegions:
+    """The pose regions of a protocol by name (data.regions): `across_line`, closed under the objects' symmetries
+    and the library's augmentations, or `cells`, the regions the archived hg4 rows were scored on."""
+    if kind not in REGIONS:
+        raise ValueError(f"data.regions={kind!r}: expected one of {sorted(REGIONS)}")
+    return REGIONS[kind](scene, seed=seed)
 
 
 def place_step_m(scene: Scene, places: int = PLACES, span: float = SPAN) -> float:

@@ -75,6 +75,10 @@ class PoseRegions:
             table[cell, rng.integers(nr)] = 2 if i % 2 == 0 else 1
         object.__setattr__(self, "table", table.reshape(nx, ny, nr))
 
+    def meta(self) -> dict:
+        """How the regions cut the pose space, as teacher files record it (their seed is `eval_seed`)."""
+        return {"cells": list(self.cells), "held_out_positions": self.held_out_positions}
+
     def cell_of(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Cell indices of poses (n, 6)."""
         s = self.scene
