@@ -16,6 +16,12 @@ run resumes next time) and starts no more. Each record is one read of the test s
     .venv/bin/python scripts/reproduce_table1.py --rows lstm --seeds 0        # one run; finished runs are reused
     .venv/bin/python scripts/reproduce_table1.py --merge-only                 # table1.* and docs/ablations.md
     .venv/bin/python scripts/reproduce_table1.py --ablations                  # docs/ablations.md alone
+    .venv/bin/python scripts/reproduce_table1.py --objects data/objects/pyb10 --rows side_scan line_scan
+                                                              # another set: table1_pyb10.*, from table1_runs_pyb10/
+
+Every table file says its `objects`, the `commit` it was merged at and `heldout_min_distance_m`: the smallest
+distance from a test pose to a training pose after the objects' symmetries and the library's augmentations
+(hg.sim.heldout; 0.0 if any test pose is an image of a training pose).
 
 Training never rewrites the table: `--merge-only` does, from the records of the rows defined here. The records of
 the hg4 research (`<out>/runs/`, made by rows whose configs were deleted at 42a3851) are listed in the ablations page
@@ -133,8 +139,13 @@ def run_name(row: str, seed: int) -> str:
     return f"{row}-seed{seed}"
 
 
-def record_path(out: Path, row: str, seed: int) -> Path:
-    return out / RUNS / f"{run_name(row, seed)}.json"
+def set_suffix(objects: str) -> str:
+    """'' for hg4, the paper's set; '_<folder name>' for another (--objects): its records and table sit beside."""
+    return "" if objects == "hg4" else f"_{Path(objects).name}"
+
+
+def record_path(out: Path, row: str, seed: int, objects: str = "hg4") -> Path:
+    return out / f"{RUNS}{set_suffix(objects)}" / f"{run_name(row, seed)}.json"
 
 
 def encoder_of(row: str) -> str | None:
@@ -148,21 +159,21 @@ def encoder_of(row: str) -> str | None:
 
 # -- one run (child process) -------------------------------------------------------------------------------
 def train_and_test(row: str, seed: int, runs_dir: Path, out: Path, jobs: int, test_episodes: int = TEST_EPISODES,
-                   add_configs: tuple[str, ...] = ()) -> None:
+                   add_configs: tuple[str, ...] = (), objects: str = "hg4") -> None:
     """Train one (row, seed) with the paper protocol, resuming from its last checkpoint; score the checkpoint that
     was best on val on the test set (a scoring row: the best checkpoint of the row it scores; a planner row: plan on
     the test episodes); write the run's record atomically (its presence marks the run done). `add_configs` come
-    after the row's composition (smoke tests: configs/parts/tiny.yaml)."""
+    after the row's composition (smoke tests: configs/parts/tiny.yaml); `objects` another object set than hg4."""
     from hg.lightning.experiment import fit_and_test
 
     spec = ROWS[row]
     code_commit = commit()  # the code this run trains with, read before it starts
     if spec.plan:
-        facts = plan_and_test(spec.plan, seed, test_episodes, spec.probes)
+        facts = plan_and_test(spec.plan, seed, test_episodes, spec.probes, objects)
     else:
         checkpoint = None
         if spec.scores:
-            source = record_path(out, spec.scores, seed)
+            source = record_path(out, spec.scores, seed, objects)
             if not source.is_file():
                 raise FileNotFoundError(f"{source}: row {row} scores the checkpoints of row {spec.scores}; run its "
                                         f"seed {seed} first")
@@ -170,8 +181,10 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out: Path, jobs: int, te
             check_definition(source, scored)
             checkpoint = ROOT / scored["best_checkpoint"]
         composition = [*spec.configs, *add_configs]
-        trained = fit_and_test([ROOT / c for c in composition], seed, runs_dir / run_name(row, seed),
-                               eval_seed=EVAL_SEED, test_episodes=test_episodes, extra_args=spec.overrides,
+        on_set = ("--data.objects", objects) if objects != "hg4" else ()
+        trained = fit_and_test([ROOT / c for c in composition], seed,
+                               runs_dir / f"{run_name(row, seed)}{set_suffix(objects)}", eval_seed=EVAL_SEED,
+                               test_episodes=test_episodes, extra_args=(*spec.overrides, *on_set),
                                checkpoint=checkpoint)
         verb = "fit" if checkpoint is None else f"test --ckpt_path {trained['best_checkpoint']}"
         columns, suffix = trained.pop("columns"), COLUMN[spec.prediction]
@@ -187,12 +200,13 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out: Path, jobs: int, te
         if spec.scores:
             facts["scores_checkpoint_of"] = spec.scores
     result = {"row": row, "label": spec.label, "prediction": spec.prediction, "probes": spec.probes,
-              "definition": spec.definition(), "split": "test", "seed": seed, **facts, "parallel_jobs": jobs,
+              "definition": spec.definition(), "objects": objects, "split": "test", "seed": seed, **facts,
+              "parallel_jobs": jobs,
               "commit": code_commit, "hardware": hardware()}
-    write_atomic(record_path(out, row, seed), json.dumps(result, indent=1) + "\n")
+    write_atomic(record_path(out, row, seed, objects), json.dumps(result, indent=1) + "\n")
 
 
-def plan_and_test(plan: tuple[str, ...], seed: int, test_episodes: int, probes: Probes) -> dict:
+def plan_and_test(plan: tuple[str, ...], seed: int, test_episodes: int, probes: Probes, objects: str = "hg4") -> dict:
     """A planner row's run: scripts/plan.py with its library and prober arguments `plan` (drawn with `seed`) on the
     test episodes every row meets, in arm mode; the facts a trained run's record holds for its result `probes`
     ("planner", "fixed" or "random"), with the script's wall time (library and planning) as the training time.
@@ -200,15 +214,15 @@ def plan_and_test(plan: tuple[str, ...], seed: int, test_episodes: int, probes: 
     from hg.lightning.data import ProbeDataModule
     from hg.lightning.experiment import test_fingerprint
 
-    args = [*plan, "--split", "test", "--episodes", str(test_episodes), "--table-episodes", "--mode", "arm",
-            "--seed", str(seed)]
+    args = [*plan, "--objects", objects, "--split", "test", "--episodes", str(test_episodes), "--table-episodes",
+            "--mode", "arm", "--seed", str(seed)]
     start = time.time()
     proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "plan.py"), *args], capture_output=True, text=True,
                           cwd=ROOT)
     if proc.returncode:
         raise RuntimeError(f"scripts/plan.py {' '.join(args)} failed (exit {proc.returncode}): {proc.stderr[-2000:]}")
     result = json.loads(proc.stdout.strip().splitlines()[-1])[probes]
-    data = ProbeDataModule(test_episodes=test_episodes, eval_seed=EVAL_SEED)
+    data = ProbeDataModule(objects=objects, test_episodes=test_episodes, eval_seed=EVAL_SEED)
     return {"plan_args": args, "command": f"scripts/plan.py {' '.join(args)}", "max_steps": 0, "resumed_from_step": 0,
             "accuracy": result["accuracy"], "accuracy_mean_action": None, "best_val_acc": None,
             "best_checkpoint": None, "train_wall_s": round(time.time() - start, 1), "test_wall_s": 0.0,
@@ -238,11 +252,12 @@ def check_definition(path: Path, record: dict, composition: list[str] | None = N
                          "(or --out elsewhere) to run this one")
 
 
-def load_runs(out: Path) -> dict[str, list[dict]]:
-    """The records of the rows defined here, by row in ROWS' order and by seed; every one must have met the same test
-    episodes and match its row's definition."""
+def load_runs(out: Path, objects: str = "hg4") -> dict[str, list[dict]]:
+    """The records of the rows defined here on the object set, by row in ROWS' order and by seed; every one must have
+    met the same test episodes and match its row's definition."""
     runs: dict[str, list[dict]] = {}
-    for path in sorted((out / RUNS).glob("*.json")):
+    folder = out / f"{RUNS}{set_suffix(objects)}"
+    for path in sorted(folder.glob("*.json")):
         record = read_record(path)
         if record["row"] not in ROWS:
             raise ValueError(f"{path}: row {record['row']!r} is not defined in scripts/reproduce_table1.py")
@@ -252,7 +267,7 @@ def load_runs(out: Path) -> dict[str, list[dict]]:
         runs.setdefault(record["row"], []).append(record)
     fingerprints = {(r["test_episodes"], r["test_fingerprint"]) for rs in runs.values() for r in rs}
     if len(fingerprints) > 1:
-        raise ValueError(f"{out / RUNS}: runs were scored on different test episodes ({sorted(fingerprints)})")
+        raise ValueError(f"{folder}: runs were scored on different test episodes ({sorted(fingerprints)})")
     return {row: sorted(runs[row], key=lambda r: r["seed"]) for row in ROWS if row in runs}
 
 
@@ -403,10 +418,26 @@ def markdown(table: dict[str, dict], merged_at: str, test_episodes: int) -> str:
     return "\n".join(lines)
 
 
-def merge(out: Path, write: bool = True) -> dict:
-    """The table of the rows defined here from their records: written to <out>/table1.{json,md,png} when `write`
-    and there is any record (else the files are left as they are). Returns each row's mean accuracy."""
-    runs = load_runs(out)
+def heldout_min_distance_m(objects: str, test_episodes: int) -> float:
+    """The smallest distance (m) from a test episode's pose to a training pose after the objects' turns, the
+    library's shifts along the line and the mirror across it (hg.sim.heldout.nearest_training_distance)."""
+    from hg.lightning.data import ProbeDataModule
+    from hg.sim.heldout import nearest_training_distance
+    from hg.sim.symmetry import object_symmetries
+
+    data = ProbeDataModule(objects=objects, mode="ideal", test_episodes=test_episodes, eval_seed=EVAL_SEED)
+    batches = data.test_dataloader().dataset.batches
+    labels = np.concatenate([b["labels"].numpy() for b in batches])
+    poses = np.concatenate([b["poses"].numpy() for b in batches])
+    gap = nearest_training_distance(poses, labels, data.regions, object_symmetries(data.object_set))
+    return 0.0 if gap.reached.any() else round(float(gap.position_m.min()), 4)
+
+
+def merge(out: Path, write: bool = True, objects: str = "hg4") -> dict:
+    """The table of the rows defined here on the object set from their records: written to
+    <out>/table1[_<set>].{json,md,png} when `write` and there is any record (else the files are left as they are).
+    Returns each row's mean accuracy."""
+    runs = load_runs(out, objects)
     merged_at = commit(paths=())
     if not runs:
         return {"commit": merged_at}
@@ -414,12 +445,14 @@ def merge(out: Path, write: bool = True) -> dict:
     if write:
         from hg.lightning.callbacks import accuracy_plot
 
-        first = next(iter(runs.values()))[0]
-        write_atomic(out / "table1.json", json.dumps({
-            "commit": merged_at, "test_episodes": first["test_episodes"], "test_fingerprint": first["test_fingerprint"],
+        first, name = next(iter(runs.values()))[0], f"table1{set_suffix(objects)}"
+        write_atomic(out / f"{name}.json", json.dumps({
+            "objects": objects, "commit": merged_at,
+            "heldout_min_distance_m": heldout_min_distance_m(objects, first["test_episodes"]),
+            "test_episodes": first["test_episodes"], "test_fingerprint": first["test_fingerprint"],
             "best_variant": best_variant(table), "rows": table, "paper": PAPER}, indent=1) + "\n")
-        write_atomic(out / "table1.md", markdown(table, merged_at, first["test_episodes"]))
-        write_atomic(out / "table1.png", accuracy_plot(
+        write_atomic(out / f"{name}.md", markdown(table, merged_at, first["test_episodes"]))
+        write_atomic(out / f"{name}.png", accuracy_plot(
             {f"{t['label']} (n={len(t['seeds'])})": t["accuracy"] for t in table.values()},
             reference={f"paper {c}": col for c, col in PAPER.items()}))
     return {"commit": merged_at, **{row: t["accuracy"] for row, t in table.items()}}
@@ -513,11 +546,12 @@ def run_children(todo: list[tuple[str, int]], args: argparse.Namespace) -> int:
 
     def launch(job: tuple[str, int]) -> bool:
         row, seed = job
-        name, done = run_name(row, seed), record_path(args.out, row, seed)
+        name, done = run_name(row, seed), record_path(args.out, row, seed, args.objects)
         log = args.runs_dir / name / "log.txt"
         log.parent.mkdir(parents=True, exist_ok=True)
         command = [sys.executable, __file__, "--one", row, str(seed), "--out", str(args.out), "--runs-dir",
                    str(args.runs_dir), "--jobs", str(args.jobs), "--test-episodes", str(args.test_episodes),
+                   "--objects", args.objects,
                    *(a for c in args.add_config for a in ("--add-config", c))]
         env = {**os.environ, "OMP_NUM_THREADS": str(threads), "WANDB_MODE": os.environ.get("WANDB_MODE", "offline")}
         start = time.time()
@@ -563,6 +597,8 @@ def main() -> None:
                         help="a config added after each trained row's composition (smoke tests: "
                              "configs/parts/tiny.yaml); recorded in the run's composition")
     parser.add_argument("--test-episodes", type=int, default=TEST_EPISODES, help="test set size (smoke tests only)")
+    parser.add_argument("--objects", default="hg4", help="object set: hg4, or a folder of meshes (data/objects/pyb10): "
+                        "its records and table sit beside hg4's as table1_runs_<name>/ and table1_<name>.*")
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "results")
     parser.add_argument("--runs-dir", type=Path, default=ROOT / "runs" / "table1", help="checkpoints and wandb runs")
     parser.add_argument("--merge-only", action="store_true",
@@ -582,7 +618,7 @@ def main() -> None:
     add_configs = tuple(repo_path(c) for c in args.add_config)
     if args.one:
         train_and_test(args.one[0], int(args.one[1]), args.runs_dir, args.out, args.jobs, args.test_episodes,
-                       add_configs)
+                       add_configs, args.objects)
         return
     if args.ablations or args.merge_only:
         write_atomic(args.out.parent / "ablations.md", ablations(args.out))
@@ -593,7 +629,7 @@ def main() -> None:
         todo = []
         for seed in args.seeds:  # seed-major: every row gets a seed early
             for row in args.rows:
-                path = record_path(args.out, row, seed)
+                path = record_path(args.out, row, seed, args.objects)
                 if path.is_file():  # done, if by this very row and composition
                     check_definition(path, read_record(path), None if ROWS[row].plan else [
                         *ROWS[row].configs, *add_configs])
@@ -602,9 +638,10 @@ def main() -> None:
         print(f"{len(todo)} runs to train: {', '.join(run_name(*t) for t in todo) or 'none'}", flush=True)
         failed = run_children(todo, args)
         print(f"{failed} runs failed; " if failed else "", "table1.* are written by --merge-only", sep="", flush=True)
-    summary = merge(args.out, write=args.merge_only)
+    summary = merge(args.out, write=args.merge_only, objects=args.objects)
     if args.merge_only and len(summary) == 1:
-        print(f"{args.out / RUNS}: no record of the rows defined here yet; table1.* left as they are", flush=True)
+        print(f"{args.out / (RUNS + set_suffix(args.objects))}: no record of the rows defined here yet; the table is "
+              "left as it is", flush=True)
     print(json.dumps(summary))
     if not args.merge_only and failed:
         sys.exit(1)

@@ -217,14 +217,25 @@ def test_a_planner_row_plans_on_the_test_episodes_and_is_merged_beside_the_learn
     try:
         table1.train_and_test("tiny_scan", 0, tmp_path / "ckpt", out, 1, test_episodes=16)
         record = json.loads(table1.record_path(out, "tiny_scan", 0).read_text())
-        assert record["command"] == ("scripts/plan.py --library-split train --library 128 --fixed --no-planner --split "
-                                     "test --episodes 16 --table-episodes --mode arm --seed 0")
+        assert record["command"] == ("scripts/plan.py --library-split train --library 128 --fixed --no-planner "
+                                     "--objects hg4 --split test --episodes 16 --table-episodes --mode arm --seed 0")
         assert record["plan_args"] == record["command"].split()[1:] and record["best_checkpoint"] is None
         assert len(record["accuracy"]) == 10 and all(0 <= a <= 1 for a in record["accuracy"])
         fake_record(table1, out, "side_scan", 0, [0.3] * 10, fingerprint=record["test_fingerprint"], test_episodes=16)
         table1.merge(out)
+        # the second object set: its own records and table beside hg4's, with what the table must say of itself
+        pyb10 = str(ROOT / "data" / "objects" / "pyb10")
+        table1.train_and_test("tiny_scan", 0, tmp_path / "ckpt", out, 1, test_episodes=16, objects=pyb10)
+        table1.merge(out, objects=pyb10)
     finally:
         del table1.ROWS["tiny_scan"]
+    hg4, second = (json.loads((out / f"table1{s}.json").read_text()) for s in ("", "_pyb10"))
+    assert hg4["objects"] == "hg4" and second["objects"] == pyb10 and second["commit"] == hg4["commit"]
+    assert set(second["rows"]) == {"tiny_scan"} and second["test_fingerprint"] != hg4["test_fingerprint"]
+    assert second["rows"]["tiny_scan"]["test_reads"] == 1 and len(second["rows"]["tiny_scan"]["accuracy"]) == 10
+    assert {e["prediction"] for e in second["rows"].values()} == {"library"}
+    for table in (hg4, second):  # the new regions: every test pose 2 cm or more from a training pose
+        assert 0.02 <= table["heldout_min_distance_m"] <= 0.1
     text = (out / "table1.md").read_text()
     assert "| tiny straight scan | library | fixed | 1 |" in text
     assert f"| tiny straight scan | `{record['command']}` |" in text
@@ -280,7 +291,7 @@ def test_merge_only_over_the_hg4_records_writes_the_ablations_page_and_leaves_th
     (out / "runs").symlink_to(ROOT / "docs" / "results" / "runs")
     result = run("reproduce_table1", "--merge-only", "--out", str(out))
     assert result.returncode == 0, result.stderr[-2000:]
-    assert "no record of the rows defined here yet; table1.* left as they are" in result.stdout
+    assert "no record of the rows defined here yet; the table is left as it is" in result.stdout
     assert not (out / "table1.md").exists() and not (out / "table1.json").exists()
     page = (tmp_path / "ablations.md").read_text()
     assert page == (ROOT / "docs" / "ablations.md").read_text()
