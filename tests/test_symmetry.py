@@ -66,7 +66,8 @@ def test_a_turn_axis_off_the_box_centre():
 
 def test_components_that_mirror_episodes_refuse_an_object_set_with_chiral_objects(tmp_path):
     """The mirror-reading touch sets and the library's mirror images assume every object is its own mirror image:
-    on pyb10 (four chiral blobs) they are refused, naming the classes; on hg4 they run."""
+    on pyb10 (four chiral blobs) they are refused, naming the classes; on hg4 they run. The touch sets' `auto`
+    (configs/parts/touch_sets.yaml) mirrors on hg4 and switches the mirror off on pyb10."""
     from hg.lightning.cli import cli
     from hg.planner import CandidateGrid, LibraryRecipe
     from hg.sim import ProbeSimulator
@@ -75,8 +76,13 @@ def test_components_that_mirror_episodes_refuse_an_object_set_with_chiral_object
     pyb10 = str(PYB10)
     args = ["--config", "configs/side_scan.yaml", "--config", "configs/parts/touch_sets.yaml", "--config",
             "configs/parts/tiny.yaml", "--trainer.logger", "false", "--trainer.default_root_dir", str(tmp_path)]
+    always = tmp_path / "mirror_true.yaml"
+    always.write_text(Path("configs/parts/touch_sets.yaml").read_text().replace("mirror: auto", "mirror: true"))
     with pytest.raises(ValueError, match=r"TouchSetClassifier\(mirror=true\): .*blob_002"):
-        cli(["fit", *args, "--data.objects", pyb10, "--trainer.max_steps", "1"])
+        cli(["fit", *args, "--config", str(always), "--data.objects", pyb10, "--trainer.max_steps", "1"])
+    for objects, mirrored in (("hg4", True), (pyb10, False)):
+        run = cli(["fit", *args, "--data.objects", objects, "--trainer.max_steps", "1"])
+        assert [head.mirror for head in run.model.heads[1:]] == [mirrored, mirrored], objects
     with ProbeSimulator(pyb10, batch_size=8, mode="ideal") as sim, pytest.raises(ValueError, match="blob_013"):
         LibraryRecipe(size=8, mirror=True).draw(sim, AcrossLineRegions(), CandidateGrid())
     with ProbeSimulator("hg4", batch_size=8, mode="ideal") as sim:

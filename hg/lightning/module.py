@@ -15,7 +15,7 @@ from hg.policies import LearnedPolicy, Policy
 from hg.rl import HybridLoss, Rollout, rollout
 from hg.rl.warmup import ImitateTeacher, Warmup
 from hg.sim import ProbeSimulator
-from hg.sim.symmetry import require_mirror
+from hg.sim.symmetry import object_symmetries, require_mirror
 from hg.lightning.library import LibrarySource
 
 Regime = Literal["classify", "reinforce", "imitate"]  # what a training step's loss trains
@@ -76,12 +76,14 @@ class HapticGlance(pl.LightningModule):
 
     def attach(self, sim: ProbeSimulator) -> None:
         """Probe in `sim`; the mirrors of the touch sets reflect about its probe line, and only for an object set
-        whose objects are their own mirror images."""
+        whose objects are their own mirror images (`mirror: auto` mirrors there and nowhere else)."""
         self.sim = sim
         for module in self.modules():
             if isinstance(module, TouchSetClassifier):
                 module.line_x = sim.scene.probe_x * self.hparams.point_scale
-                if module.mirror:
+                if module.mirror == "auto":
+                    module.mirror = all(s.mirror for s in object_symmetries(sim.objects))
+                elif module.mirror:
                     require_mirror(sim.objects, "model.heads: TouchSetClassifier(mirror=true)")
 
     def teardown(self, stage: str) -> None:

@@ -1,5 +1,6 @@
 """Point cloud classifiers: PointNet and DGCNN on 10 sparse points for the paper's noise comparison (Fig. 4b), and
 the touch-set classifier that reads the touched points of a rollout."""
+from typing import Literal
 
 import torch
 from torch import Tensor, nn
@@ -91,14 +92,15 @@ class TouchSetClassifier(nn.Module):
 
     With `mirror`, each prefix's probes are mirrored across the probe line's vertical plane (X = `line_x`, point
     coordinates; the model sets it from its scene) when their touches' mean lies on its -x side: an object and its
-    mirror image across the line then read alike. Only for object sets whose shapes are mirror-symmetric.
+    mirror image across the line then read alike. Only for object sets whose shapes are mirror-symmetric: `auto`
+    mirrors when every object of the set is its own mirror image (the model decides when it attaches a simulator).
 
     With `last_only`, the head scores the whole episode only (one row): the model lets it replace the prediction
     after the last probe, where one head scoring every prefix reads a reordered scan's full set worse.
     """
 
-    def __init__(self, dims: Dims, mirror: bool = False, last_only: bool = False, shared: tuple[int, ...] = (64, 128, 512),
-                 hidden: int = 256, scale: float = 5.0) -> None:
+    def __init__(self, dims: Dims, mirror: bool | Literal["auto"] = False, last_only: bool = False,
+                 shared: tuple[int, ...] = (64, 128, 512), hidden: int = 256, scale: float = 5.0) -> None:
         super().__init__()
         self.mirror, self.last_only, self.line_x = mirror, last_only, 0.0
         self.scale = scale  # relative coordinates of a ~0.2 m object (x point_scale) to about unit size
