@@ -144,8 +144,17 @@ def set_suffix(objects: str) -> str:
     return "" if objects == "hg4" else f"_{Path(objects).name}"
 
 
+def records_folder(out: Path, objects: str = "hg4") -> Path:
+    return out / f"{RUNS}{set_suffix(objects)}"
+
+
 def record_path(out: Path, row: str, seed: int, objects: str = "hg4") -> Path:
-    return out / f"{RUNS}{set_suffix(objects)}" / f"{run_name(row, seed)}.json"
+    return records_folder(out, objects) / f"{run_name(row, seed)}.json"
+
+
+def run_folder(runs_dir: Path, row: str, seed: int, objects: str = "hg4") -> Path:
+    """Where a run's checkpoints, wandb run and log live."""
+    return runs_dir / f"{run_name(row, seed)}{set_suffix(objects)}"
 
 
 def encoder_of(row: str) -> str | None:
@@ -183,7 +192,7 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out: Path, jobs: int, te
         composition = [*spec.configs, *add_configs]
         on_set = ("--data.objects", objects) if objects != "hg4" else ()
         trained = fit_and_test([ROOT / c for c in composition], seed,
-                               runs_dir / f"{run_name(row, seed)}{set_suffix(objects)}", eval_seed=EVAL_SEED,
+                               run_folder(runs_dir, row, seed, objects), eval_seed=EVAL_SEED,
                                test_episodes=test_episodes, extra_args=(*spec.overrides, *on_set),
                                checkpoint=checkpoint)
         verb = "fit" if checkpoint is None else f"test --ckpt_path {trained['best_checkpoint']}"
@@ -200,7 +209,8 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out: Path, jobs: int, te
         if spec.scores:
             facts["scores_checkpoint_of"] = spec.scores
     result = {"row": row, "label": spec.label, "prediction": spec.prediction, "probes": spec.probes,
-              "definition": spec.definition(), "objects": objects, "split": "test", "seed": seed, **facts,
+              "definition": spec.definition(), "objects": objects if objects == "hg4" else repo_path(objects),
+              "split": "test", "seed": seed, **facts,
               "parallel_jobs": jobs,
               "commit": code_commit, "hardware": hardware()}
     write_atomic(record_path(out, row, seed, objects), json.dumps(result, indent=1) + "\n")
@@ -256,12 +266,15 @@ def load_runs(out: Path, objects: str = "hg4") -> dict[str, list[dict]]:
     """The records of the rows defined here on the object set, by row in ROWS' order and by seed; every one must have
     met the same test episodes and match its row's definition."""
     runs: dict[str, list[dict]] = {}
-    folder = out / f"{RUNS}{set_suffix(objects)}"
+    folder = records_folder(out, objects)
     for path in sorted(folder.glob("*.json")):
         record = read_record(path)
         if record["row"] not in ROWS:
             raise ValueError(f"{path}: row {record['row']!r} is not defined in scripts/reproduce_table1.py")
         check_definition(path, record)
+        made_on = record.get("objects", "hg4")  # records from before --objects are hg4's
+        if made_on != (objects if objects == "hg4" else repo_path(objects)):
+            raise ValueError(f"{path}: a run on objects {made_on}, not {objects}")
         if record.get("split") != "test":
             raise ValueError(f"{path}: scored the {record.get('split')} split; the table holds test scores only")
         runs.setdefault(record["row"], []).append(record)
@@ -547,7 +560,7 @@ def run_children(todo: list[tuple[str, int]], args: argparse.Namespace) -> int:
     def launch(job: tuple[str, int]) -> bool:
         row, seed = job
         name, done = run_name(row, seed), record_path(args.out, row, seed, args.objects)
-        log = args.runs_dir / name / "log.txt"
+        log = run_folder(args.runs_dir, row, seed, args.objects) / "log.txt"
         log.parent.mkdir(parents=True, exist_ok=True)
         command = [sys.executable, __file__, "--one", row, str(seed), "--out", str(args.out), "--runs-dir",
                    str(args.runs_dir), "--jobs", str(args.jobs), "--test-episodes", str(args.test_episodes),
@@ -640,7 +653,7 @@ def main() -> None:
         print(f"{failed} runs failed; " if failed else "", "table1.* are written by --merge-only", sep="", flush=True)
     summary = merge(args.out, write=args.merge_only, objects=args.objects)
     if args.merge_only and len(summary) == 1:
-        print(f"{args.out / (RUNS + set_suffix(args.objects))}: no record of the rows defined here yet; the table is "
+        print(f"{records_folder(args.out, args.objects)}: no record of the rows defined here yet; the table is "
               "left as it is", flush=True)
     print(json.dumps(summary))
     if not args.merge_only and failed:

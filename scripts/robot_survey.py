@@ -21,7 +21,7 @@ from pathlib import Path
 import pybullet_data
 
 from hg.atomic import write_atomic
-from hg.sim.urdf_tools import MOVABLE, chain_joints, leaf_links, load_urdf, swap_robot
+from hg.sim.urdf_tools import leaf_links, load_urdf, movable_joints, swap_robot
 
 ROOT = Path(__file__).resolve().parents[1]
 WRITTEN = ROOT / "tests" / "data" / "robots"
@@ -34,7 +34,7 @@ def longest_chain(path: Path) -> int:
         robot = load_urdf(path).robot
     except (ValueError, FileNotFoundError):
         return 0
-    return max((sum(j.type in MOVABLE for j in chain_joints(robot, leaf)) for leaf in leaf_links(robot)), default=0)
+    return max((movable_joints(robot, leaf) for leaf in leaf_links(robot)), default=0)
 
 
 def bundled_arms(min_joints: int) -> list[Path]:
@@ -60,7 +60,8 @@ def survey(path: Path, n_verify: int, seed: int) -> dict:
             entry["refused"] = message.replace(str(ROOT) + "/", "")
         else:
             summary = result.summary()
-            entry.update(joints=summary["joints"], tool_link=summary["tool_link"], reach_fraction=summary["reach_fraction"],
+            entry.update(joints=summary["joints"], tool_link=summary["tool_link"],
+                         reach_fraction=summary["reach_fraction"],
                          n_requests=summary["n_requests"], base_position=summary["base_position"],
                          base_rpy_deg=summary["base_rpy_deg"], base=str(result.base),
                          misses=result.report.split("where it fails", 1)[-1].strip() if result.reach.fraction < 1

@@ -48,8 +48,10 @@ def truncated_checkpoint() -> None:
 SPHERE = trimesh.creation.icosphere(radius=0.1)
 # (case, what is wrong, subcommand and arguments, setup in the run's folder, fragment the message must contain)
 CASES = [
-    ("cli: Trainer option", "`--trainer.max_steps=-5`", ["fit", "--trainer.max_steps=-5"], None, "trainer: `max_steps`"),
-    ("cli: unknown option", "`--model.foo 1`", ["fit", "--model.foo", "1"], None, "unrecognized arguments: --model.foo"),
+    ("cli: Trainer option", "`--trainer.max_steps=-5`", ["fit", "--trainer.max_steps=-5"], None,
+     "lightning: `max_steps`"),
+    ("cli: unknown option", "`--model.foo 1`", ["fit", "--model.foo", "1"], None,
+     "unrecognized arguments: --model.foo"),
     ("cli: wrong type", "`--data.n_probes ten`", ["fit", "--data.n_probes", "ten"], None, "data.n_probes"),
     ("cli: out of range", "`--data.n_probes 0`", ["fit", "--data.n_probes", "0"], None, "data.n_probes=0"),
     ("config: missing file", "`--config missing.yaml`", ["fit", "--config", "missing.yaml"], None, "missing.yaml"),
@@ -72,7 +74,8 @@ CASES = [
     ("objects: empty folder", "a folder with no meshes", ["fit", "--data.objects", "objects"],
      lambda: Path("objects").mkdir(), "objects: no .obj or .stl mesh files"),
     ("mesh: empty", "an empty .obj file", ["fit", "--data.objects", "objects"],
-     lambda: (meshes(("ball.stl", SPHERE)), Path("objects/empty.obj").write_text("")), "objects/empty.obj: mesh is empty"),
+     lambda: (meshes(("ball.stl", SPHERE)), Path("objects/empty.obj").write_text("")),
+     "objects/empty.obj: mesh is empty"),
     ("mesh: unreadable", "random bytes as .stl", ["fit", "--data.objects", "objects"],
      lambda: (meshes(("ball.stl", SPHERE)), Path("objects/noise.stl").write_bytes(bytes(range(256)) * 2)),
      "objects/noise.stl: no mesh read from its 512 bytes"),

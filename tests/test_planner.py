@@ -4,7 +4,7 @@ import math
 import os
 import subprocess
 import sys
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -82,11 +82,15 @@ def test_classifier_names_as_the_recorded_library_namer_did():
     chosen = torch.from_numpy(np.abs(requests[:, :, None] - candidates).max(-1).argmin(-1))
     assert np.abs(candidates[chosen.numpy()] - requests).max() < 1e-5
     with ProbeSimulator("hg4", batch_size=1024, mode="ideal") as sim:
-        classifier = LibraryClassifier.build(sim, regions, grid, LibraryRecipe.from_meta(meta, 64))
-        library, library_labels, _ = teacher_library(meta, sim, regions, 4, 64)
+        recipe = LibraryRecipe.from_meta(meta, 64)
+        assert not recipe.confined  # a file from before schema 2: its planner read an unconfined library
+        classifier = LibraryClassifier.build(sim, regions, grid, replace(recipe, confined=True))  # as the model does
+        library, library_labels, _ = teacher_library(meta, sim, regions, 4, 64)  # what the planner read
+        confined, confined_labels, _ = replace(recipe, confined=True).draw(sim, regions, grid)
         read = torch.from_numpy(readings(sim, labels, poses, candidates)).gather(1, chosen)
-    assert classifier.library.shape == (len(candidates), len(library)) and sorted(library_labels) == \
+    assert classifier.library.shape == (len(candidates), len(confined)) and sorted(confined_labels) == \
         classifier.labels.tolist()
+    assert len(confined) < len(library)  # the copies its shifts and mirrors carried into held-out cells are gone
     torch.testing.assert_close(classifier(chosen, read), torch.tensor(golden["eval_named"]), atol=1e-5, rtol=0)
 
 
@@ -133,7 +137,8 @@ def test_plan_writes_a_teacher_that_loads_with_its_provenance(tmp_path):
     candidates = torch.from_numpy(CandidateGrid(3, 0.5, (1.0,)).requests()).float()
     assert ((loaded["requests"][:, :, None] - candidates).abs().amax(-1).amin(-1) < 1e-6).all()  # every one a candidate
     meta = teacher_meta([path])
-    assert meta["schema"] == 1 and meta["objects"] == "hg4" and meta["scene"] == json.loads(json.dumps(asdict(Scene())))
+    assert meta["schema"] == 2 and meta["confined"] and meta["objects"] == "hg4"
+    assert meta["scene"] == json.loads(json.dumps(asdict(Scene())))
     assert meta["robot"] == "urdf/hg_probe_arm.urdf" and meta["mode"] == "ideal" and meta["noise"] == 0.0
     assert (meta["seed"], meta["library_seed"], meta["eval_seed"], meta["library"], meta["places"]) == (4, 4, 0, 128, 3)
     assert meta["summary"] == result["planner"] and meta["commit"]
@@ -150,6 +155,7 @@ def test_a_teacher_of_another_world_probe_count_or_sensor_is_refused_naming_the_
     other_scene = Scene(probe_length=0.5)
     for change, message in (({"object_set_name": "other"}, "teacher meta objects='hg4', this run has 'other'"),
                             ({"regions": PoseRegions(seed=1)}, "teacher meta eval_seed=0, this run has 1"),
+                            ({"regions": AcrossLineRegions()}, r"teacher meta regions=\{'cells'"),
                             ({"scene": other_scene, "regions": PoseRegions(other_scene)}, "teacher meta scene="),
                             ({"n_probes": 4}, r"expected \(16, 4, 4\) \(n_probes=4\)"),
                             ({"noise": SensorNoise(miss_prob=0.1, false_contact_prob=0.1)},
@@ -171,8 +177,8 @@ def test_a_teacher_of_another_world_probe_count_or_sensor_is_refused_naming_the_
         teacher_meta([path, other])
     newer = tmp_path / "newer.npz"
     with np.load(path) as f:
-        np.savez(newer, **{k: f[k] for k in f.files} | {"meta": np.array(json.dumps(read_meta(path) | {"schema": 2}))})
-    with pytest.raises(ValueError, match=f"{newer}: teacher meta schema=2, this code reads schema <= 1"):
+        np.savez(newer, **{k: f[k] for k in f.files} | {"meta": np.array(json.dumps(read_meta(path) | {"schema": 3}))})
+    with pytest.raises(ValueError, match=f"{newer}: teacher meta schema=3, this code reads schema <= 2"):
         teacher_meta([newer])
     with pytest.raises(FileNotFoundError, match="nope.npz: teacher file not found"):
         load_teacher([tmp_path / "nope.npz"], **world)
@@ -192,7 +198,7 @@ def test_old_teacher_files_load_as_schema_0_checked_on_what_they_carry():
     assert loaded["requests"].shape == (4096, 10, 4) and loaded["faults"] is None
     meta = teacher_meta([old])
     assert meta["schema"] == 0 and meta["library_seed"] == 10 and meta["along_leans"] == [] and "scene" not in meta
-    assert LibraryRecipe.from_meta(meta) == LibraryRecipe(32768, "train", 5, True, 10, 0.005, 1e-3)
+    assert LibraryRecipe.from_meta(meta) == LibraryRecipe(32768, "train", 5, True, 10, 0.005, 1e-3, confined=False)
     assert CandidateGrid.from_meta(meta) == CandidateGrid()
     rate = SensorNoise(miss_prob=0.1, false_contact_prob=0.1)
     assert load_teacher([noisy], **world, noise=rate)["faults"].shape == (3072, 10, 2)

@@ -213,6 +213,10 @@ def error_case(kind: str, tmp_path: Path) -> tuple[list[str], type, list[str]]:
     if kind == "xacro":
         return [str(ROBOTS / "xacro_arm.urdf.xacro")] + out, ValueError, ["xacro_arm.urdf.xacro", "xacro file",
                                                                           "xacrodoc"]
+    if kind == "xacro_named_urdf":  # found by its xacro elements and ${...}, not by its name
+        source = tmp_path / "arm.urdf"
+        source.write_text((ROBOTS / "xacro_arm.urdf.xacro").read_text())
+        return [str(source)] + out, ValueError, [str(source), "xacro file", "xacrodoc"]
     if kind == "missing_mesh":
         source = bare_arm(tmp_path / "arm.urdf", mesh=True)
         (tmp_path / "parts" / "cover.stl").unlink()
@@ -225,7 +229,7 @@ def error_case(kind: str, tmp_path: Path) -> tuple[list[str], type, list[str]]:
 
 
 KINDS = ["malformed", "missing_tool", "ambiguous", "missing_mesh", "unreachable", "mimic_in_chain", "floating_world",
-         "xacro"]
+         "xacro", "xacro_named_urdf"]
 
 
 @pytest.mark.parametrize("kind", KINDS)

@@ -75,7 +75,7 @@ class FinalValidation(pl.Callback):
                            batch_idx: int) -> None:
         interval = trainer.val_check_interval
         if (trainer.max_steps > 0 and trainer.global_step >= trainer.max_steps and isinstance(interval, int)
-                and trainer.global_step % interval):
+                and trainer.accumulate_grad_batches == 1 and trainer.global_step % interval):  # steps = batches
             trainer.should_stop = True
 
 

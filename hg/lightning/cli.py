@@ -58,7 +58,8 @@ class OneLineParser(LightningArgumentParser):
 def read_checkpoint(ckpt_path: str | None) -> dict | None:
     """The checkpoint a subcommand was given, read as Lightning will read it (weights only), before anything else
     happens: a missing or unreadable file fails here with its name. None for no path or a name Lightning resolves."""
-    if ckpt_path is None or str(ckpt_path) in LIGHTNING_CKPT_NAMES or "://" in str(ckpt_path):
+    if (ckpt_path is None or str(ckpt_path) in LIGHTNING_CKPT_NAMES or "://" in str(ckpt_path)
+            or str(ckpt_path).lower().startswith("registry:")):
         return None
     path = Path(ckpt_path)
     if not path.is_file():
@@ -73,16 +74,20 @@ def read_checkpoint(ckpt_path: str | None) -> dict | None:
     return saved
 
 
-def check_fits(saved: dict, ckpt_path: str, model: torch.nn.Module) -> None:
-    """A checkpoint of another composition fails before the run starts, naming the first weight that differs."""
-    weights = saved["state_dict"]
+def check_fits(shapes: dict[str, tuple[int, ...]], ckpt_path: str, model: torch.nn.Module) -> None:
+    """A checkpoint of another composition fails before the run starts, naming the first weight that differs
+    (`shapes`: the checkpoint's state_dict shapes, by name)."""
     advice = "give the config it was trained with (config.yaml in its run directory)"
-    for name, tensor in model.state_dict().items():
-        if name not in weights:
+    mine = {name: tuple(tensor.shape) for name, tensor in model.state_dict().items()}
+    for name, shape in mine.items():
+        if name not in shapes:
             raise ValueError(f"ckpt_path={ckpt_path}: written for another model: it has no '{name}'; {advice}")
-        if tuple(weights[name].shape) != tuple(tensor.shape):
+        if shapes[name] != shape:
             raise ValueError(f"ckpt_path={ckpt_path}: written for another model: '{name}' has shape "
-                             f"{tuple(weights[name].shape)} there, {tuple(tensor.shape)} here; {advice}")
+                             f"{shapes[name]} there, {shape} here; {advice}")
+    if extra := sorted(set(shapes) - set(mine)):
+        raise ValueError(f"ckpt_path={ckpt_path}: written for another model: this one has no '{extra[0]}'"
+                         f"{f' (and {len(extra) - 1} more)' if len(extra) > 1 else ''}; {advice}")
 
 
 class HapticCLI(LightningCLI):
@@ -90,16 +95,18 @@ class HapticCLI(LightningCLI):
     Trainer when they are built; the checkpoint's fit to the model in `before_<subcommand>`), so bad input never
     leaves a run directory, a wandb run or a checkpoint behind."""
 
-    checkpoint: dict | None = None
+    checkpoint_shapes: dict[str, tuple[int, ...]] | None = None  # of the given checkpoint's weights, by name
 
     def parse_arguments(self, parser: LightningArgumentParser, args) -> None:
         super().parse_arguments(parser, args)
         if self.config.get("subcommand"):  # Lightning reads the checkpoint's hyperparameters next
-            self.checkpoint = read_checkpoint(self.config[self.config.subcommand].get("ckpt_path"))
+            saved = read_checkpoint(self.config[self.config.subcommand].get("ckpt_path"))
+            if saved is not None:
+                self.checkpoint_shapes = {k: tuple(v.shape) for k, v in saved["state_dict"].items()}
 
     def _check_ckpt_path(self) -> None:
-        if self.checkpoint is not None:
-            check_fits(self.checkpoint, self.config[self.subcommand].ckpt_path, self.model)
+        if self.checkpoint_shapes is not None:
+            check_fits(self.checkpoint_shapes, self.config[self.subcommand].ckpt_path, self.model)
 
     before_fit = before_validate = before_test = before_predict = _check_ckpt_path
 
@@ -186,7 +193,7 @@ def main() -> None:
     except (ValueError, FileNotFoundError, FloatingPointError, MisconfigurationException) as exc:
         if os.environ.get("HG_TRACEBACK"):
             raise
-        where = "trainer: " if isinstance(exc, MisconfigurationException) else ""  # Lightning's own checks
+        where = "lightning: " if isinstance(exc, MisconfigurationException) else ""  # Lightning's own checks
         print(f"hg: error: {where}{one_line(exc, 1000)}", file=sys.stderr)
         sys.exit(2)
 

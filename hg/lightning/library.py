@@ -1,7 +1,7 @@
 """The model's library classifier: built from a teacher file's recipe, it names a rollout's probes (hg.planner)."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -16,8 +16,9 @@ from hg.sim import ProbeSimulator
 @dataclass
 class LibrarySource:
     """Where the library classifier comes from: the library recipe of a teacher file (its planner's), with
-    `episodes` training episodes in place of the file's library size if given. The episodes it draws are training
-    poses; their copies shifted along the line and mirrored may land in held-out regions (issue #56)."""
+    `episodes` training episodes in place of the file's library size if given, drawn in the run's regions (the
+    file's, checked) and always confined: no moved or mirrored copy outside the training region, even where the
+    file's planner read an unconfined library (teacher files before schema 2)."""
 
     teacher: str
     episodes: int | None = None
@@ -33,6 +34,7 @@ class LibrarySource:
         for field, have, want in (("library_split", meta.get("library_split"), "train"),
                                   ("objects", meta.get("objects"), data.object_set.name),
                                   ("eval_seed", meta.get("eval_seed"), data.regions.seed),
+                                  ("regions", meta.get("regions", data.regions.meta()), data.regions.meta()),
                                   *(((k, meta.get(k), v) for k, v in grid.items()) if grid else ()),
                                   ("along_leans", meta.get("along_leans", []), [])):
             if have != want:
@@ -41,7 +43,8 @@ class LibrarySource:
                                  "policy's)")
         with ProbeSimulator(data.object_set, 1024, data.scene, "ideal", seed=0) as sim:
             classifier = LibraryClassifier.build(sim, data.regions, file_grid,
-                                                 LibraryRecipe.from_meta(meta, self.episodes), data.noise)
+                                                 replace(LibraryRecipe.from_meta(meta, self.episodes), confined=True),
+                                                 data.noise)
         candidates = file_grid.requests()
         return LibraryScorer(classifier, torch.from_numpy(candidates).float(),
                              torch.from_numpy(data.scene.request_to_probe(candidates)[0]).float())

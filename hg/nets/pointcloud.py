@@ -132,6 +132,9 @@ class TouchSetClassifier(nn.Module):
         else:  # the pairs, prefix by prefix
             k, j = torch.tril_indices(n, n, device=points.device)
         at, centre_k = xyz[:, j], centre[:, k]  # (B, P, 3): each pair's point and its prefix's centre
+        if self.mirror == "auto":
+            raise RuntimeError("TouchSetClassifier(mirror='auto'): attach the model to a simulator first "
+                               "(HapticGlance.attach decides from its object set)")
         if self.mirror:  # X -> 2 line_x - X for the prefixes whose touches lie on the -x side
             flip = left_of_line(points, self.line_x)[:, k]
             at, centre_k = (reflect(v, 0, self.line_x, flip) for v in (at, centre_k))

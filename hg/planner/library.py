@@ -61,7 +61,9 @@ class LibraryRecipe:
     """How a library is drawn and read: `size` episodes of the `split`'s poses drawn with `seed` (the rng of seed + 1,
     as every teacher file's library was drawn), with their moves along the line by up to `shifts` place steps each way
     and with `mirror` their mirror images (library_readings); the classifier's touch-distance tolerance `sigma` (m)
-    and `mismatch`, the weight kept by a touch read as a miss or back (hg.planner.log_likelihood)."""
+    and `mismatch`, the weight kept by a touch read as a miss or back (hg.planner.log_likelihood). `confined`: a
+    training library leaves out the moved or mirrored copies that show a pose outside the training region (issue
+    #56); teacher files written before it (schema < 2) were planned over unconfined libraries."""
 
     size: int = 262144
     split: str = "train"  # held-out poses enter a library only when asked for (scripts/plan.py --library-split)
@@ -70,6 +72,7 @@ class LibraryRecipe:
     seed: int = 0
     sigma: float = 0.005
     mismatch: float = 1e-3
+    confined: bool = True
 
     def __post_init__(self) -> None:
         if self.size < 1 or self.shifts < 0:
@@ -82,14 +85,14 @@ class LibraryRecipe:
     def meta(self) -> dict:
         """The recipe as a teacher file's meta records it (the keys files have always used)."""
         return {"library": self.size, "library_split": self.split, "shifts": self.shifts, "mirror": self.mirror,
-                "library_seed": self.seed, "sigma": self.sigma, "mismatch": self.mismatch}
+                "library_seed": self.seed, "sigma": self.sigma, "mismatch": self.mismatch, "confined": self.confined}
 
     @classmethod
     def from_meta(cls, meta: dict, size: int | None = None) -> "LibraryRecipe":
         """The recipe of a teacher file's library (`size` episodes in place of its own if given). Files from before
-        schema 1 drew their library with the planner's seed."""
+        schema 1 drew their library with the planner's seed, from before schema 2 unconfined."""
         return cls(size or meta["library"], meta["library_split"], meta["shifts"], meta["mirror"],
-                   meta.get("library_seed", meta["seed"]), meta["sigma"], meta["mismatch"])
+                   meta.get("library_seed", meta["seed"]), meta["sigma"], meta["mismatch"], meta.get("confined", False))
 
     def draw(self, sim: ProbeSimulator, regions: Regions, grid: CandidateGrid
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -102,7 +105,7 @@ class LibraryRecipe:
             require_mirror(sim.objects, "the library's mirror images (LibraryRecipe.mirror)")
         labels, poses = sample_episodes(regions, self.split, self.size, len(sim.classes),
                                         np.random.default_rng(self.seed + 1))
-        confine = (regions, object_symmetries(sim.objects)) if self.split == "train" else None
+        confine = (regions, object_symmetries(sim.objects)) if self.confined and self.split == "train" else None
         return library_readings(sim, labels, poses, grid.places, grid.span, list(grid.leans), self.shifts,
                                 self.mirror, list(grid.along_leans), confine)
 

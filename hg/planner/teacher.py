@@ -24,7 +24,7 @@ from hg.sim.poses import SPLITS
 from hg.sim.scene import Scene
 from hg.sim.simulator import SensorNoise
 
-SCHEMA = 1
+SCHEMA = 2  # 1: the world and seeds recorded; 2: the library's confinement (LibraryRecipe.confined)
 WRITE_ONE = "write one with scripts/plan.py --save-rollouts"
 # what must agree between teacher files read together: one classifier reads every file's sequences, and they must
 # have come from one world

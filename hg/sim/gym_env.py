@@ -42,7 +42,7 @@ class _Episodes:
         if n_probes < 1:
             raise ValueError(f"n_probes={n_probes}: must be >= 1")
         self.sim = ProbeSimulator(objects, num_envs, scene, mode, robot, noise=noise)
-        self.regions = make_regions(regions, scene, eval_seed)
+        self.regions = make_regions(regions, scene, eval_seed, field="regions")
         self.n_probes, self.split, self.classifier = n_probes, split, classifier
         self.requests = np.zeros((num_envs, n_probes, 4), np.float32)
         self.points = np.zeros((num_envs, n_probes, 4), np.float32)

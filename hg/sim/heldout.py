@@ -107,11 +107,11 @@ class AcrossLineRegions:
 REGIONS = {"across_line": AcrossLineRegions, "cells": PoseRegions}  # cells: the hg4 research's regions (archive)
 
 
-def make_regions(kind: str, scene: Scene, seed: int = 0) -> AcrossLineRegions | PoseRegions:
-    """The pose regions of a protocol by name (data.regions): `across_line`, closed under the objects' symmetries
-    and the library's augmentations, or `cells`, the regions the archived hg4 rows were scored on."""
+def make_regions(kind: str, scene: Scene, seed: int = 0, field: str = "data.regions") -> AcrossLineRegions | PoseRegions:
+    """The pose regions of a protocol by name (`field`, named in the error): `across_line`, closed under the objects'
+    symmetries and the library's augmentations, or `cells`, the regions the archived hg4 rows were scored on."""
     if kind not in REGIONS:
-        raise ValueError(f"data.regions={kind!r}: expected one of {sorted(REGIONS)}")
+        raise ValueError(f"{field}={kind!r}: expected one of {sorted(REGIONS)}")
     return REGIONS[kind](scene, seed=seed)
 
 

@@ -139,7 +139,7 @@ def pick_tool_link(robot: yourdfpy.Robot, path: Path, tool_link: str | None = No
     if len(leaves) == 1:
         return leaves[0]
     paths = [[j.child for j in chain_joints(robot, leaf)] for leaf in leaves]
-    shared = [names[0] for names in zip(*paths) if len(set(names)) == 1]  # links every leaf hangs from
+    shared = [at_depth[0] for at_depth in zip(*paths) if len(set(at_depth)) == 1]  # links every leaf hangs from
     if shared and any(j.type != "fixed" for j in chain_joints(robot, shared[-1])):
         return shared[-1]  # a gripper's base or a hand: the last link the fingers (or frames) share
     raise ValueError(f"robot URDF {path}: {len(leaves)} leaf links on separate branches, so the tool link is "
@@ -370,9 +370,11 @@ def write_urdf(robot: yourdfpy.Robot, out: Path, comments: Iterable[str] = ()) -
     """Write with yourdfpy, after leading comments (how the file was made, the source's licence notices)."""
     xml = yourdfpy.URDF(robot=robot, build_scene_graph=False, load_meshes=False,
                         filename_handler=yourdfpy.filename_handler_null).write_xml()  # else paths get rewritten
+    written = {e.get("name"): e for e in xml.getroot().iter("joint")}
     for joint in (j for j in robot.joints if j.mimic is not None):  # yourdfpy's writer drops <mimic>
-        etree.SubElement(xml.getroot().find(f"joint[@name='{joint.name}']"), "mimic", joint=joint.mimic.joint,
-                         multiplier=str(joint.mimic.multiplier), offset=str(joint.mimic.offset))
+        if written[joint.name].find("mimic") is None:
+            etree.SubElement(written[joint.name], "mimic", joint=joint.mimic.joint,
+                             multiplier=str(joint.mimic.multiplier), offset=str(joint.mimic.offset))
     body = etree.tostring(xml, pretty_print=True, encoding="unicode")
     notes = "".join(f"<!--{c if c.startswith(' ') else ' ' + c}{'' if c.endswith(' ') else ' '}-->\n"
                     for c in (c.replace("--", "- -") for c in comments))  # '--' may not appear in a comment
@@ -389,6 +391,11 @@ def chain_joints(robot: yourdfpy.Robot, link: str) -> list[yourdfpy.Joint]:
         chain.append(by_child[link])
         link = by_child[link].parent
     return chain[::-1]
+
+
+def movable_joints(robot: yourdfpy.Robot, link: str) -> int:
+    """How many joints between the root and `link` move (what IK has to place it with)."""
+    return sum(j.type in MOVABLE for j in chain_joints(robot, link))
 
 
 def reach_bound(robot: yourdfpy.Robot, link: str = TOOL_LINK) -> tuple[str, float]:
@@ -770,7 +777,7 @@ def swap_robot(source: str | Path, out: str | Path, tool_link: str | None = None
 
     reach = measure_reach(out, scene, n_verify, seed + 2)
     title = f"Reach report for {out} ({tool} + {ROD_LENGTH} m probe rod), {n_verify} random requests:"
-    joints = sum(j.type in MOVABLE for j in chain_joints(robot, tool))
+    joints = movable_joints(robot, tool)
     result = SwapResult(out, tool, joints, base, reach, mesh_bytes, reach_report(reach, scene, title, base))
     if reach.fraction < min_reach:
         log(result.report)
