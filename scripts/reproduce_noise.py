@@ -97,6 +97,7 @@ def train_point_cloud_net(name: str, rate: float, seed: int, steps: int, batch_s
     """Supervised training on fresh train-region clouds; the state best on val is scored on test."""
     torch.manual_seed(seed)
     scene, objects = Scene(), load_object_set("hg4")
+    # the regions of the probing model it is compared with (planner_copy: its teacher files are in the cells)
     regions = PoseRegions(scene, seed=EVAL_SEED)
     val, test = fixed_clouds(regions, objects, "val", VAL_EPISODES, rate), fixed_clouds(regions, objects, "test",
                                                                                          TEST_EPISODES, rate)
