@@ -133,6 +133,9 @@ def test_plan_writes_a_teacher_that_loads_with_its_provenance(tmp_path):
     loaded = load_teacher([path], object_set_name="hg4", scene=Scene(), regions=AcrossLineRegions(), n_probes=3)
     with pytest.raises(ValueError, match=r"teacher meta regions=\{'across_line'.*this run has \{'cells'"):
         load_teacher([path], object_set_name="hg4", scene=Scene(), regions=PoseRegions(), n_probes=3)
+    # the bands do not depend on the evaluation seed: a run drawing other validation and test episodes may copy it
+    again = load_teacher([path], object_set_name="hg4", scene=Scene(), regions=AcrossLineRegions(seed=1), n_probes=3)
+    assert torch.equal(again["requests"], loaded["requests"])
     assert loaded["requests"].shape == (16, 3, 4) and loaded["faults"] is None and loaded["labels"].dtype == torch.long
     candidates = torch.from_numpy(CandidateGrid(3, 0.5, (1.0,)).requests()).float()
     assert ((loaded["requests"][:, :, None] - candidates).abs().amax(-1).amin(-1) < 1e-6).all()  # every one a candidate

@@ -111,9 +111,9 @@ def load_teacher(paths: list[str | Path], *, object_set_name: str, scene: Scene,
                 raise ValueError(f"{path}: not a teacher file, no {sorted(missing)}")
             labels, poses, requests = f["labels"], f["poses"], f["requests"]
             faults = f["faults"] if "faults" in f.files else None
-        expected = json.loads(json.dumps({"objects": object_set_name, "eval_seed": regions.seed, "noise": rate,
-                                          "scene": asdict(scene), "regions": regions.meta(),
-                                          "sensor": asdict(noise)}))  # as the meta holds them: tuples as lists
+        expected = json.loads(json.dumps({"objects": object_set_name, "noise": rate, "scene": asdict(scene),
+                                          "regions": regions.meta(), "sensor": asdict(noise)}
+                                         | ({"eval_seed": regions.seed} if regions.seeded else {})))  # as in meta
         if meta.get("library_split", "train") != "train":
             raise ValueError(f"{path}: teacher meta library_split={meta['library_split']!r}: its planner weighed "
                              "held-out poses; a teacher must be planned over training poses only")

@@ -37,6 +37,7 @@ class Regions(Protocol):
 
     scene: Scene
     seed: int
+    seeded: bool  # whether the seed shapes the regions (then a teacher must have been planned with the same one)
 
     def split_of(self, poses: np.ndarray) -> np.ndarray: ...
 
@@ -55,6 +56,7 @@ class AcrossLineRegions:
     seed: int = 0  # of the evaluation episodes drawn from these regions (data.eval_seed); the bands do not use it
     bands: tuple[Band, ...] = DEFAULT_BANDS
     heading_free: ClassVar[bool] = True  # split_of does not read the heading
+    seeded: ClassVar[bool] = False  # the bands are fixed: a teacher planned here fits any eval_seed
 
     def __post_init__(self) -> None:
         bands = tuple((float(lo), float(hi), str(split)) for lo, hi, split in self.bands)

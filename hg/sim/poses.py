@@ -7,6 +7,7 @@ cell one Rz sector is held out (for test or val), so test also holds unseen (pos
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -57,6 +58,7 @@ class PoseRegions:
     seed: int = 0
     cells: tuple[int, int, int] = (4, 4, 6)
     held_out_positions: int = 2  # whole position cells given to each of val and test
+    seeded: ClassVar[bool] = True  # the seed draws which cells are held out
 
     def __post_init__(self) -> None:
         nx, ny, nr = self.cells
