@@ -148,6 +148,11 @@ def records_folder(out: Path, objects: str = "hg4") -> Path:
     return out / f"{RUNS}{set_suffix(objects)}"
 
 
+def recorded_objects(objects: str) -> str:
+    """The object set as a record names it: hg4, or the folder relative to the repository (portable)."""
+    return objects if objects == "hg4" else repo_path(objects)
+
+
 def record_path(out: Path, row: str, seed: int, objects: str = "hg4") -> Path:
     return records_folder(out, objects) / f"{run_name(row, seed)}.json"
 
@@ -209,7 +214,7 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out: Path, jobs: int, te
         if spec.scores:
             facts["scores_checkpoint_of"] = spec.scores
     result = {"row": row, "label": spec.label, "prediction": spec.prediction, "probes": spec.probes,
-              "definition": spec.definition(), "objects": objects if objects == "hg4" else repo_path(objects),
+              "definition": spec.definition(), "objects": recorded_objects(objects),
               "split": "test", "seed": seed, **facts,
               "parallel_jobs": jobs,
               "commit": code_commit, "hardware": hardware()}
@@ -273,7 +278,7 @@ def load_runs(out: Path, objects: str = "hg4") -> dict[str, list[dict]]:
             raise ValueError(f"{path}: row {record['row']!r} is not defined in scripts/reproduce_table1.py")
         check_definition(path, record)
         made_on = record.get("objects", "hg4")  # records from before --objects are hg4's
-        if made_on != (objects if objects == "hg4" else repo_path(objects)):
+        if made_on != recorded_objects(objects):
             raise ValueError(f"{path}: a run on objects {made_on}, not {objects}")
         if record.get("split") != "test":
             raise ValueError(f"{path}: scored the {record.get('split')} split; the table holds test scores only")

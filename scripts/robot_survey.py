@@ -25,6 +25,7 @@ from hg.sim.urdf_tools import leaf_links, load_urdf, movable_joints, swap_robot
 
 ROOT = Path(__file__).resolve().parents[1]
 WRITTEN = ROOT / "tests" / "data" / "robots"
+DATA = Path(pybullet_data.getDataPath())
 BEGIN, END = "<!-- robot survey: begin (scripts/robot_survey.py writes this part) -->", "<!-- robot survey: end -->"
 
 
@@ -38,8 +39,7 @@ def longest_chain(path: Path) -> int:
 
 
 def bundled_arms(min_joints: int) -> list[Path]:
-    data = Path(pybullet_data.getDataPath())
-    return [p for p in sorted(data.rglob("*.urdf")) if longest_chain(p) >= min_joints]
+    return [p for p in sorted(DATA.rglob("*.urdf")) if longest_chain(p) >= min_joints]
 
 
 def written_arms() -> list[Path]:
@@ -47,16 +47,15 @@ def written_arms() -> list[Path]:
 
 
 def survey(path: Path, n_verify: int, seed: int) -> dict:
-    data = Path(pybullet_data.getDataPath())
-    name = str(path.relative_to(data)) if data in path.parents else str(path.relative_to(ROOT))
-    entry = {"arm": name, "source": "pybullet_data" if data in path.parents else "written"}
+    name = str(path.relative_to(DATA)) if DATA in path.parents else str(path.relative_to(ROOT))
+    entry = {"arm": name, "source": "pybullet_data" if DATA in path.parents else "written"}
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="hg-survey-") as tmp:
         try:
             result = swap_robot(path, Path(tmp) / "arm_probe.urdf", visuals="collision", n_verify=n_verify,
                                 seed=seed, generator="scripts/robot_survey.py")
         except (ValueError, FileNotFoundError) as exc:
-            message = re.sub(r"robot URDF \S+: ", "", str(exc)).replace(str(data), "pybullet_data")
+            message = re.sub(r"robot URDF \S+: ", "", str(exc)).replace(str(DATA), "pybullet_data")
             entry["refused"] = message.replace(str(ROOT) + "/", "")
         else:
             summary = result.summary()

@@ -33,8 +33,8 @@ class LibrarySource:
         file_grid = CandidateGrid.from_meta(meta)
         for field, have, want in (("library_split", meta.get("library_split"), "train"),
                                   ("objects", meta.get("objects"), data.object_set.name),
-                                  ("eval_seed", meta.get("eval_seed"),
-                                   data.regions.seed if data.regions.seeded else meta.get("eval_seed")),
+                                  *((("eval_seed", meta.get("eval_seed"), data.regions.seed),)
+                                    if data.regions.seeded else ()),
                                   ("regions", meta.get("regions", data.regions.meta()), data.regions.meta()),
                                   *(((k, meta.get(k), v) for k, v in grid.items()) if grid else ()),
                                   ("along_leans", meta.get("along_leans", []), [])):
