@@ -497,3 +497,29 @@ def test_gradient_diagnostics_measure_what_the_policy_term_sends_into_the_encode
     assert [float(r["step"]) for r in resumed] == [0.0, 1.0, 2.0, 3.0] and resumed[:2] == rows
     detached = fit(tmp_path / "detached", 2, "--model.policy.init_args.reads_detached", "true")
     assert all(float(r["grad_policy"]) == 0 and float(r["grad_ce"]) > 0 for r in detached)
+
+
+class LossRecorder(pl.Callback):
+    def __init__(self) -> None:
+        self.losses: list[float] = []
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        self.losses.append(float(outputs["loss"]))
+
+
+@pytest.mark.parametrize("every, logged_steps", [(1, [0, 1, 2, 3]), (3, [2])])
+def test_training_metrics_are_logged_on_the_steps_lightning_writes(every, logged_steps, tmp_path):
+    """The step logs its terms only when Lightning writes them (every log_every_n_steps): each written row is that
+    step's, none a stale one of an earlier step."""
+    logger = ["--trainer.logger", json.dumps({"class_path": "pytorch_lightning.loggers.CSVLogger",
+                                              "init_args": {"save_dir": str(tmp_path), "name": "csv"}})]
+    run = cli([*args_of(ROWS["pcrn_fc"], "--trainer.default_root_dir", str(tmp_path / "run")), *logger,
+               "--trainer.log_every_n_steps", str(every)], run=False)
+    recorder = LossRecorder()
+    run.trainer.callbacks.append(recorder)
+    run.trainer.fit(run.model, datamodule=run.datamodule)
+    rows = list(csv.DictReader(next(tmp_path.glob("csv/*/metrics.csv")).open()))
+    written = [r for r in rows if r.get("train/loss")]
+    assert [int(r["step"]) for r in written] == logged_steps
+    assert [float(r["train/loss"]) for r in written] == pytest.approx([recorder.losses[s] for s in logged_steps])
+    assert all(r["train/touch_rate@4"] and r["train/reach_rate"] and r["train/lr"] for r in written)

@@ -148,14 +148,17 @@ class HapticGlance(pl.LightningModule):
         if not torch.isfinite(terms["loss"]):
             raise FloatingPointError(f"non-finite loss {terms['loss'].item()} at global step {self.global_step} "
                                      f"(terms: { {k: round(v.item(), 4) for k, v in terms.items()} })")
-        size = len(labels)
         touches = rollout.points[..., 3].mean(0)
         terms |= {"touch_rate": touches.mean(), **{f"touch_rate@{k + 1}": t for k, t in enumerate(touches)},
                   "clamp_share": (rollout.actions.abs() > 1).float().mean()}  # requests executed other than drawn
         self.last_terms = terms  # for the gradient diagnostics (hg.lightning.callbacks.GradientDiagnostics)
-        self.log_dict({f"train/{k}": v for k, v in terms.items()}, batch_size=size)
-        self.log("train/reach_rate", rollout.reached.float().mean(), batch_size=size)
-        self.log("train/lr", self.optimizers().param_groups[0]["lr"], batch_size=size)
+        # Lightning writes training metrics every log_every_n_steps only; a self.log call costs about as much as the
+        # step's loss pass, so the step logs only when they will be written (Lightning's own test, same step count)
+        if self.trainer._logger_connector.should_update_logs:
+            size = len(labels)
+            self.log_dict({f"train/{k}": v for k, v in terms.items()}
+                          | {"train/reach_rate": rollout.reached.float().mean(),
+                             "train/lr": self.optimizers().param_groups[0]["lr"]}, batch_size=size)
         return terms["loss"]
 
     # -- evaluation ----------------------------------------------------------------------------------

@@ -90,10 +90,21 @@ class LocationNetwork(PolicyState):
                 self.net[-1].weight[:action_dim].zero_()
                 self.net[-1].bias[:action_dim].zero_()
 
-    def distribution(self, state: Tensor, action: Tensor, offset: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    def state_input(self, state: Tensor) -> Tensor:
+        """The first layer's pre-activation from the state alone (its bias included): sampling reuses it for each of
+        the A components, so the state's columns, most of the first layer, are multiplied once per probe."""
+        first = self.net[0]
+        return F.linear(state, first.weight[:, :state.shape[-1]], first.bias)  # state inputs are never masked
+
+    def distribution(self, state: Tensor, action: Tensor, offset: Tensor | None = None,
+                     state_input: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """(mu, sigma) of every component, (..., D), (..., A) -> (..., A) twice; masking lets mu_j, sigma_j
-        see only action[..., :j]. mu = tanh(.), sigma = (std_floor + (std_max - std_floor) * sigmoid(.)) * std_scale."""
-        mu, pre_sigma = self.net(torch.cat([state, action], -1)).chunk(2, -1)
+        see only action[..., :j]. mu = tanh(.), sigma = (std_floor + (std_max - std_floor) * sigmoid(.)) * std_scale.
+        state_input: `state_input(state)`, when already computed."""
+        first = self.net[0]
+        hidden = (self.state_input(state) if state_input is None else state_input) + F.linear(
+            action, (first.weight * first.mask)[:, state.shape[-1]:])
+        mu, pre_sigma = self.net[1:](hidden).chunk(2, -1)
         if offset is not None:  # a prior request schedule, added before the tanh (beyond the paper)
             mu = mu + offset
         sigma = self.std_floor + (self.std_max - self.std_floor) * torch.sigmoid(pre_sigma)
@@ -114,8 +125,9 @@ class LocationNetwork(PolicyState):
         else:
             eps = torch.zeros(shape, device=state.device, dtype=state.dtype)
         action = torch.zeros_like(eps)
+        state_input = self.state_input(state)
         for j in range(self.action_dim):
-            mu, sigma = self.distribution(state, action, offset)
+            mu, sigma = self.distribution(state, action, offset, state_input)
             value = mu[..., j] + sigma[..., j] * eps[..., j]
             for _ in range(100 if self.truncated else 0):  # re-draw what fell outside [-1, 1]
                 outside = value.abs() > 1
