@@ -5,7 +5,10 @@ simulator does), getLinkState for the achieved tool pose, and the probe's share 
 Bare ideal cost: the rayTestBatch alone. Both also place each batch's objects with the same
 resetBasePositionAndOrientation calls as `ProbeSimulator.reset` (so that the first ray batch after a reset pays
 for the moved objects in both timings).
-Last line: JSON with arm_probes_per_s, ideal_probes_per_s, bare_arm_probes_per_s, bare_ideal_probes_per_s.
+Timings alternate episode batch by episode batch (simulator, bare, simulator, bare, ...), so that a change in the
+machine's speed reaches both alike; each of `--repeats` passes over the batches gives one ratio, and the figure is
+their median, with their spread (min, max).
+Last line: JSON with, per mode, probes/s of both (medians), `<mode>_ratio` and `<mode>_ratio_spread`.
 """
 from __future__ import annotations
 
@@ -16,6 +19,7 @@ import time
 import numpy as np
 import pybullet
 
+from hg.provenance import hardware
 from hg.sim import PoseRegions, ProbeSimulator, sample_episodes
 from hg.sim.client import OBJECT_GROUP
 from hg.sim.robot import tool_orientations
@@ -29,36 +33,33 @@ def episodes(sim: ProbeSimulator, n_batches: int, n_probes: int, seed: int) -> l
              rng.uniform(-1, 1, (n_probes, sim.batch_size, 4))) for _ in range(n_batches)]
 
 
-def time_simulator(sim: ProbeSimulator, work: list[tuple]) -> float:
-    start = time.perf_counter()
-    for labels, poses, requests in work:
-        sim.reset(labels, poses)
-        for step in requests:
-            sim.probe(step)
-    return time.perf_counter() - start
-
-
-def time_bare(sim: ProbeSimulator, work: list[tuple], arm: bool) -> float:
-    """The same PyBullet calls issued directly, with request mapping and warm starts prepared outside the clock."""
-    cid = sim.client.id
+def prepare_bare(sim: ProbeSimulator, work: list[tuple], arm: bool) -> list[tuple]:
+    """Per episode batch, what the bare timing issues: the reset's object moves, then per probe step the IK targets
+    with their warm starts (arm mode) and the rays; the request mapping and warm-start lookup are left outside the
+    clock."""
     prepared = []
     for labels, poses, requests in work:
         moves = sim.placement(labels, poses)[1]  # the object moves of this episode batch, issued in the clock
         sim.reset(labels, poses)
-        for k, step in enumerate(requests):
+        steps = []
+        for step in requests:
             entry, direction = sim.scene.request_to_probe(step)
             rows = [(p.tolist(), o.tolist(), q.tolist()) for p, o, q in zip(
                 entry, tool_orientations(direction), sim.arm.map_q[sim.arm.grid.nearest(sim.scene, entry, direction)])] \
                 if arm else None
             starts = entry + sim.offsets
-            ends = starts + sim.scene.probe_length * direction
-            prepared.append((moves if k == 0 else [], rows, starts, ends))
-    elapsed = 0.0
-    for moves, rows, starts, ends in prepared:
-        t0 = time.perf_counter()
-        for body, position, orientation in moves:
-            pybullet.resetBasePositionAndOrientation(body, position, orientation, physicsClientId=cid)
-        if arm:
+            steps.append((rows, starts, starts + sim.scene.probe_length * direction))
+        prepared.append((moves, steps))
+    return prepared
+
+
+def bare_batch(sim: ProbeSimulator, moves: list[tuple], steps: list[tuple]) -> None:
+    """One episode batch as bare PyBullet calls: the same calls `ProbeSimulator.reset` and `probe` issue."""
+    cid = sim.client.id
+    for body, position, orientation in moves:
+        pybullet.resetBasePositionAndOrientation(body, position, orientation, physicsClientId=cid)
+    for rows, starts, ends in steps:
+        if rows is not None:
             body, tool, joints, damping = sim.arm.body, sim.arm.tool, sim.arm.joints, sim.arm.damping
             for point, orient, warm in rows:
                 q = pybullet.calculateInverseKinematics(
@@ -68,8 +69,21 @@ def time_bare(sim: ProbeSimulator, work: list[tuple], arm: bool) -> float:
                 pybullet.getLinkState(body, tool, computeForwardKinematics=True, physicsClientId=cid)
         pybullet.rayTestBatch(rayFromPositions=starts, rayToPositions=ends, collisionFilterMask=OBJECT_GROUP,
                               physicsClientId=cid)
-        elapsed += time.perf_counter() - t0
-    return elapsed
+
+
+def time_pair(sim: ProbeSimulator, work: list[tuple], prepared: list[tuple]) -> tuple[float, float]:
+    """Seconds of the simulator and of the bare calls over all episode batches, alternating batch by batch, so that
+    the machine's speed changes reach both alike."""
+    simulator = bare = 0.0
+    for (labels, poses, requests), (moves, steps) in zip(work, prepared):
+        t0 = time.perf_counter()
+        sim.reset(labels, poses)
+        for step in requests:
+            sim.probe(step)
+        t1 = time.perf_counter()
+        bare_batch(sim, moves, steps)
+        simulator, bare = simulator + t1 - t0, bare + time.perf_counter() - t1
+    return simulator, bare
 
 
 def main() -> None:
@@ -78,21 +92,28 @@ def main() -> None:
     parser.add_argument("--probes", type=int, default=10)
     parser.add_argument("--arm-batches", type=int, default=20)
     parser.add_argument("--ideal-batches", type=int, default=200)
-    parser.add_argument("--repeats", type=int, default=3, help="best of this many timings")
+    parser.add_argument("--repeats", type=int, default=7, help="interleaved (simulator, bare) timing pairs, >= 5")
     args = parser.parse_args()
+    if args.repeats < 5:
+        parser.error(f"--repeats {args.repeats}: the ratios are medians of at least 5 pairs")
     figures = {}
     for mode, n_batches in (("arm", args.arm_batches), ("ideal", args.ideal_batches)):
         with ProbeSimulator(batch_size=args.batch_size, mode=mode) as sim:
             work = episodes(sim, n_batches, args.probes, seed=0)
+            prepared = prepare_bare(sim, work, mode == "arm")
             n = n_batches * args.probes * args.batch_size
-            figures[f"{mode}_probes_per_s"] = n / min(time_simulator(sim, work) for _ in range(args.repeats))
-            figures[f"bare_{mode}_probes_per_s"] = n / min(time_bare(sim, work, mode == "arm")
-                                                           for _ in range(args.repeats))
-        ratio = figures[f"{mode}_probes_per_s"] / figures[f"bare_{mode}_probes_per_s"]
+            time_pair(sim, work, prepared)  # one untimed pass: caches and allocations settle
+            pairs = np.array([time_pair(sim, work, prepared) for _ in range(args.repeats)])
+        ratios = pairs[:, 1] / pairs[:, 0]
+        figures.update({f"{mode}_probes_per_s": round(n / float(np.median(pairs[:, 0])), 1),
+                        f"bare_{mode}_probes_per_s": round(n / float(np.median(pairs[:, 1])), 1),
+                        f"{mode}_ratio": round(float(np.median(ratios)), 3),
+                        f"{mode}_ratio_spread": [round(float(ratios.min()), 3), round(float(ratios.max()), 3)]})
         print(f"{mode:5s}: {figures[f'{mode}_probes_per_s']:10.0f} probes/s, bare PyBullet "
-              f"{figures[f'bare_{mode}_probes_per_s']:10.0f} probes/s, ratio {ratio:.2f}")
-    figures.update(batch_size=args.batch_size, probes=args.probes)
-    print(json.dumps({k: round(v, 1) if isinstance(v, float) else v for k, v in figures.items()}))
+              f"{figures[f'bare_{mode}_probes_per_s']:10.0f} probes/s, ratio {figures[f'{mode}_ratio']:.2f} "
+              f"(median of {args.repeats} pairs, spread {ratios.min():.2f}-{ratios.max():.2f})")
+    figures.update(batch_size=args.batch_size, probes=args.probes, repeats=args.repeats, host=hardware())
+    print(json.dumps(figures))
 
 
 if __name__ == "__main__":

@@ -104,7 +104,7 @@ class LocationNetwork(PolicyState):
         first = self.net[0]
         hidden = (self.state_input(state) if state_input is None else state_input) + F.linear(
             action, (first.weight * first.mask)[:, state.shape[-1]:])
-        mu, pre_sigma = self.net[1:](hidden).chunk(2, -1)
+        mu, pre_sigma = self.net[4](self.net[3](self.net[2](self.net[1](hidden)))).chunk(2, -1)  # no slice: it builds a module
         if offset is not None:  # a prior request schedule, added before the tanh (beyond the paper)
             mu = mu + offset
         sigma = self.std_floor + (self.std_max - self.std_floor) * torch.sigmoid(pre_sigma)

@@ -45,14 +45,23 @@ def tool_orientations(directions: np.ndarray) -> np.ndarray:
     normalise((0, 0, -1) x u, 1 - u_z). Their product, written out, is (1 - u_z, 0, u_x, -u_y) normalised.
     """
     u = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
-    q = np.column_stack([1.0 - u[:, 2], np.zeros(len(u)), u[:, 0], -u[:, 1]])
-    return q / np.sqrt((q * q).sum(axis=1))[:, None]
+    q = np.empty((len(u), 4))  # filled column by column: this runs at every probe
+    q[:, 0] = 1.0 - u[:, 2]
+    q[:, 1] = 0.0
+    q[:, 2] = u[:, 0]
+    q[:, 3] = -u[:, 1]
+    q /= np.sqrt((q * q).sum(axis=1))[:, None]
+    return q
 
 
 def z_axes(quaternions: np.ndarray) -> np.ndarray:
     """Third column of the rotation matrix of each quaternion (x, y, z, w): the tool's probing axis."""
     x, y, z, w = np.asarray(quaternions, dtype=np.float64).reshape(-1, 4).T
-    return np.column_stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)])
+    axes = np.empty((len(x), 3))
+    axes[:, 0] = 2 * (x * z + w * y)
+    axes[:, 1] = 2 * (y * z - w * x)
+    axes[:, 2] = 1 - 2 * (x * x + y * y)
+    return axes
 
 
 def load_robot(client: BulletClient, urdf: str | Path, tool_link: str = TOOL_LINK) -> tuple[int, int]:
@@ -230,7 +239,8 @@ class ProbeArm:
     def pose_error(self, points: np.ndarray, dirs: np.ndarray, tips: np.ndarray, axes: np.ndarray) -> np.ndarray:
         """(n, 2): position error in metres and angle error in degrees of achieved vs requested poses."""
         error = np.empty((len(points), 2))
-        error[:, 0] = np.sqrt(((tips - points) ** 2).sum(-1))
+        gap = tips - points
+        error[:, 0] = np.sqrt((gap * gap).sum(-1))
         error[:, 1] = np.degrees(np.arccos(np.clip((axes * dirs).sum(-1), -1.0, 1.0)))
         return error
 

@@ -54,6 +54,9 @@ class SensorNoise:
                 raise ValueError(f"noise.{name}={getattr(self, name)}: must be a probability in [0, 1]")
 
 
+NO_NOISE = SensorNoise()
+
+
 @dataclass(frozen=True)
 class ProbeResult:
     """One probe step for n episodes."""
@@ -62,7 +65,7 @@ class ProbeResult:
     entry: np.ndarray  # (n, 3) requested entry point P
     direction: np.ndarray  # (n, 3) requested unit direction u
     pose_error: np.ndarray  # (n, 2) achieved-vs-requested tip position (m) and axis angle (deg); 0 in ideal mode
-    clean_points: np.ndarray  # (n, 4) what a fault-free sensor reported (== points without noise); for analysis
+    clean_points: np.ndarray  # (n, 4) what a fault-free sensor reported (points itself without noise); for analysis
 
 
 class ProbeSimulator:
@@ -70,7 +73,7 @@ class ProbeSimulator:
 
     def __init__(self, objects: str | Path | ObjectSet = "hg4", batch_size: int = 64, scene: Scene = Scene(),
                  mode: str = "arm", robot: str | Path = DEFAULT_URDF, tool_link: str = TOOL_LINK,
-                 noise: SensorNoise = SensorNoise(), seed: int = 0, visuals: bool = False) -> None:
+                 noise: SensorNoise = NO_NOISE, seed: int = 0, visuals: bool = False) -> None:
         if mode not in MODES:
             raise ValueError(f"mode={mode!r}: expected one of {MODES}")
         if batch_size < 1:
@@ -178,9 +181,10 @@ class ProbeSimulator:
         end = start + self.scene.probe_length * axis
         hit, position = self.client.cast_rays(start + offset, end + offset)
         points = np.empty((n, 4))
-        points[:, :3] = end
-        points[hit, :3] = position[hit] - offset[hit]
+        points[:, :3] = np.where(hit[:, None], position - offset, end)
         points[:, 3] = hit
+        if self.noise == NO_NOISE:  # the common case, at every probe: nothing to corrupt, nothing to copy
+            return ProbeResult(points, entry, direction, error, points)
         clean = points.copy()
         self._apply_noise(points, start, end, hit, faults)
         return ProbeResult(points, entry, direction, error, clean)
