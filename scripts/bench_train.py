@@ -2,8 +2,11 @@
 
 The step time is split into simulator (reset + probes), forward (policy rollout forwards, the loss pass and
 Lightning's bookkeeping) and backward (backward + optimizer step). Validation is timed once and counted
-max_steps / val_check_interval times in the projection. Last line: JSON with steps_per_s, sim_fraction,
-projected_paper_minutes and the split.
+max_steps / val_check_interval times in the projection. The network's arithmetic alone is timed too, on the same
+model: the rollout's policy and encoder steps, the loss pass, backward and Adam's step, with a recorded rollout
+replayed in place of the simulator and no Lightning (`network_ms`); `sim_fraction_ceiling` is the simulator's share
+if everything else in a step cost nothing beyond that arithmetic. Last line: JSON with steps_per_s, sim_fraction,
+projected_paper_minutes, the split, network_ms, sim_fraction_ceiling and the host.
 
     .venv/bin/python scripts/bench_train.py --config configs/side_scan.yaml --config configs/parts/touch_sets.yaml
 """
@@ -14,9 +17,14 @@ import json
 import tempfile
 import time
 
+import numpy as np
 import pytorch_lightning as pl
+import torch
 
 from hg.lightning.cli import cli
+from hg.provenance import hardware
+from hg.rl import rollout
+from hg.sim.simulator import ProbeResult
 
 
 class StepTimer(pl.Callback):
@@ -56,12 +64,51 @@ class StepTimer(pl.Callback):
             self.steps += 1
 
 
+class Replay:
+    """Stands in for the simulator when timing the network alone: every probe returns the recorded rollout's reading."""
+
+    arm = None  # no pose errors to read
+
+    def __init__(self, points: torch.Tensor, point_scale: float) -> None:
+        self.points = points.clone()
+        self.points[..., :3] /= point_scale  # rollout() scales them again
+        self.points, self.k = self.points.double().numpy(), 0
+
+    def reset(self, labels, poses, seed=None) -> None:
+        self.k = 0
+
+    def probe(self, requests, faults=None) -> ProbeResult:
+        points, self.k = self.points[:, self.k], self.k + 1
+        return ProbeResult(points, None, None, None, points)
+
+
+def network_ms(model: pl.LightningModule, batch: dict, repeats: int) -> float:
+    """Median ms of one training step's arithmetic: a rollout replayed (policy and encoder steps), the loss pass,
+    backward and an Adam step, on one batch of real episodes."""
+    labels, poses, seed = batch["labels"], batch["poses"], int(batch["seed"])
+    replay = Replay(model.roll(labels, poses, seed).points, model.hparams.point_scale)
+    regime = "reinforce" if model.policy.learned else "classify"
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-6)
+    times = []
+    for _ in range(repeats + 2):  # two untimed
+        start = time.perf_counter()
+        replayed = rollout(replay, model.policy, labels, poses, seed, model.hparams.n_probes, model.hparams.point_scale,
+                           model.encoder)
+        terms, _ = model.evaluate(replayed, labels, regime)
+        optimizer.zero_grad()
+        terms["loss"].backward()
+        optimizer.step()
+        times.append(time.perf_counter() - start)
+    return 1000 * float(np.median(times[2:]))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", action="append", default=[],
                         help="config files combined in order, as `hg fit --config` (default: configs/pcrn_fc.yaml)")
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--warmup", type=int, default=10)
+    parser.add_argument("--network-repeats", type=int, default=20, help="timings of the network alone (median)")
     args, overrides = parser.parse_known_args()
     configs = args.config or ["configs/pcrn_fc.yaml"]
     composition = [a for c in configs for a in ("--config", c)]
@@ -82,7 +129,12 @@ def main() -> None:
                         "--trainer.enable_progress_bar", "false", "--trainer.default_root_dir", tmp], run=False)
         validate.trainer.validate(run.model, datamodule=validate.datamodule, verbose=False)
         val_seconds = time.perf_counter() - start
+        data = run.datamodule
+        run.model.attach(data.make_simulator())
+        arithmetic = network_ms(run.model, next(iter(data.train_dataloader())), args.network_repeats)
+        run.model.sim.close()
     step = timer.step_time / timer.steps
+    sim_ms = 1000 * timer.sim_time / timer.steps
     figures = {
         "configs": configs,
         "steps_timed": timer.steps,
@@ -91,12 +143,18 @@ def main() -> None:
         "sim_fraction": round(timer.sim_time / timer.step_time, 3),
         "forward_fraction": round(1 - (timer.sim_time + timer.backward_time) / timer.step_time, 3),
         "backward_fraction": round(timer.backward_time / timer.step_time, 3),
+        "network_ms": round(arithmetic, 1),
+        "sim_fraction_ceiling": round(sim_ms / (sim_ms + arithmetic), 3),
         "validation_s": round(val_seconds, 1),
         "projected_paper_minutes": round((paper_steps * step + paper_steps // val_every * val_seconds) / 60, 1),
+        "threads": torch.get_num_threads(),
+        "host": hardware(),
     }
     print(f"{figures['step_ms']} ms per step: simulator {figures['sim_fraction']:.0%}, forward "
           f"{figures['forward_fraction']:.0%}, backward {figures['backward_fraction']:.0%}; one validation "
-          f"{val_seconds:.1f} s; {paper_steps} steps projected at {figures['projected_paper_minutes']} min")
+          f"{val_seconds:.1f} s; {paper_steps} steps projected at {figures['projected_paper_minutes']} min on "
+          f"{figures['host']}; the network's arithmetic alone {arithmetic:.1f} ms per step (simulator share at most "
+          f"{figures['sim_fraction_ceiling']:.0%})")
     print(json.dumps(figures))
 
 
