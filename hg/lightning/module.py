@@ -200,4 +200,4 @@ class HapticGlance(pl.LightningModule):
         lr, slow = self.hparams.lr, self.hparams.lr * self.hparams.policy_lr_scale
         # initial_lr: each group's own rate, which a schedule scales; it rides in the optimizer's state on resume
         groups = [{"params": rest, "initial_lr": lr}, {"params": policy, "lr": slow, "initial_lr": slow}]
-        return torch.optim.Adam(groups, lr=lr)
+        return torch.optim.Adam(groups, lr=lr, foreach=True)  # one call per step for all tensors: torch's default on CPU loops
