@@ -131,7 +131,7 @@ def run_jobs(jobs: Sequence[Job], cpus_per_job: int, at_once: int, cwd: Path, ad
                     state, written, code = "not started (stopping)", False, None
                 except ray.exceptions.RayError as exc:
                     state, written, code = f"FAILED ({type(exc).__name__}), see {job.log}", False, None
-                else:
+                else:  # a Lightning fit stopped by SIGTERM exits 0 without its file: not done
                     state = (("done" if written else f"stopped before writing {job.done.name}, see {job.log}")
                              if code == 0 else f"FAILED (exit {code}), see {job.log}") + f" in {seconds:.0f} s"
                 failed += not (written and code == 0)

@@ -6,14 +6,18 @@ overrides, or scripts/plan.py's arguments for a row that plans instead of learni
 prediction (the learned heads, the library classifier, or both summed: "learned", "library", "mixed") and what
 chooses its probes ("learned" policy, "fixed" scan, "random" probes, the greedy "planner").
 
-Each (row, seed) is one run in a child process. A finished run leaves its record, a small JSON in
-`<out>/table1_runs/` (its composition, its command, the accuracy after each probe, commit, hardware); it is never
-recomputed, so rows can be run separately (even on other machines) and merged, and an interrupted run resumes from
-its last checkpoint in `<runs-dir>`. SIGTERM stops the running children (Lightning ends a fit at the next step; the
-run resumes next time) and starts no more. Each record is one read of the test split; the table counts them per row.
+Each (row, seed) is one run in a child process (this script with `--one`, its log in its run folder), started by a
+Ray task (hg.sweep): on a local Ray instance that trains `--jobs` runs at once, or on a Ray cluster given by
+`--address` or RAY_ADDRESS (README, "Running the table on a cluster"); a row that scores another row's checkpoints
+runs after that row's run of the same seed. A finished run leaves its record, a small JSON in `<out>/table1_runs/`
+(its composition, its command, the accuracy after each probe, commit, hardware); it is never recomputed, so rows can
+be run separately (even on other machines) and merged, and an interrupted run resumes from its last checkpoint in
+`<runs-dir>`. SIGTERM or Ctrl-C cancels the runs not started and stops the running children (Lightning ends a fit at
+the next step; the run resumes next time). Each record is one read of the test split; the table counts them per row.
 
     .venv/bin/python scripts/reproduce_table1.py --jobs 2                     # every row, seeds 0 1 2
     .venv/bin/python scripts/reproduce_table1.py --rows lstm --seeds 0        # one run; finished runs are reused
+    RAY_ADDRESS=head:6379 .venv/bin/python scripts/reproduce_table1.py --threads 4   # on a Ray cluster
     .venv/bin/python scripts/reproduce_table1.py --merge-only                 # table1.* and docs/ablations.md
     .venv/bin/python scripts/reproduce_table1.py --ablations                  # docs/ablations.md alone
     .venv/bin/python scripts/reproduce_table1.py --objects data/objects/pyb10 --rows side_scan line_scan
@@ -34,12 +38,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import subprocess
 import sys
-import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -49,6 +50,7 @@ import yaml
 
 from hg.atomic import write_atomic
 from hg.provenance import commit, hardware, repo_path
+from hg.sweep import Job, Stopped, run_jobs
 
 ROOT = Path(__file__).resolve().parents[1]
 TEST_EPISODES = 2048  # the fixed held-out test set every row is scored on (data.eval_seed 0)
@@ -549,68 +551,40 @@ def ablations(out: Path) -> str:
 
 # -- driver -----------------------------------------------------------------------------------------------
 def run_children(todo: list[tuple[str, int]], args: argparse.Namespace) -> int:
-    """Each (row, seed) of `todo` in a child process, `args.jobs` at once, the rows that score other rows'
-    checkpoints after those rows. SIGTERM stops the running children and starts no more. Returns how many runs did
-    not write their record."""
+    """Each (row, seed) of `todo` as one Ray task running this script's `--one` child (hg.sweep.run_jobs), a row
+    that scores another row's checkpoints after that row's run of the same seed. SIGTERM or Ctrl-C stops the running
+    children and starts no more. Returns how many runs did not write their record."""
     threads = args.threads or max(1, (os.cpu_count() or 1) // args.jobs)
-    children: set[subprocess.Popen] = set()
-    lock, stopping = threading.Lock(), threading.Event()
-
-    def stop(signum: int, frame) -> None:
-        stopping.set()
-        with lock:
-            for child in children:
-                child.send_signal(signal.SIGTERM)
-
-    def launch(job: tuple[str, int]) -> bool:
-        row, seed = job
-        name, done = run_name(row, seed), record_path(args.out, row, seed, args.objects)
-        log = run_folder(args.runs_dir, row, seed, args.objects) / "log.txt"
-        log.parent.mkdir(parents=True, exist_ok=True)
-        command = [sys.executable, __file__, "--one", row, str(seed), "--out", str(args.out), "--runs-dir",
+    env = {"OMP_NUM_THREADS": str(threads), "WANDB_MODE": os.environ.get("WANDB_MODE", "offline")}
+    names = {run_name(*job) for job in todo}
+    jobs = []
+    for row, seed in sorted(todo, key=lambda job: bool(ROWS[job[0]].scores)):  # a scored run's job comes first
+        command = (sys.executable, __file__, "--one", row, str(seed), "--out", str(args.out), "--runs-dir",
                    str(args.runs_dir), "--jobs", str(args.jobs), "--test-episodes", str(args.test_episodes),
-                   "--objects", args.objects,
-                   *(a for c in args.add_config for a in ("--add-config", c))]
-        env = {**os.environ, "OMP_NUM_THREADS": str(threads), "WANDB_MODE": os.environ.get("WANDB_MODE", "offline")}
-        start = time.time()
-        with open(log, "a") as stream, lock:
-            if stopping.is_set():
-                print(f"{name}: not started (stopping)", flush=True)
-                return False
-            child = subprocess.Popen(command, stdout=stream, stderr=subprocess.STDOUT, env=env, cwd=ROOT)
-            children.add(child)
-        code = child.wait()
-        with lock:
-            children.discard(child)
-        # a child stopped by SIGTERM leaves Lightning's fit with exit 0 and no record: not done
-        written = done.is_file()
-        state = ("done" if written else f"stopped before writing its record, see {log}") if code == 0 else \
-            f"FAILED (exit {code}), see {log}"
-        print(f"{name}: {state} in {time.time() - start:.0f} s", flush=True)
-        return written and code == 0
-
-    previous = signal.signal(signal.SIGTERM, stop)
+                   "--objects", args.objects, *(a for c in args.add_config for a in ("--add-config", c)))
+        scored = run_name(ROWS[row].scores, seed) if ROWS[row].scores else None
+        log = run_folder(args.runs_dir, row, seed, args.objects) / "log.txt"
+        jobs.append(Job(run_name(row, seed), command, log, record_path(args.out, row, seed, args.objects), env,
+                        after=(scored,) if scored in names else ()))
     try:
-        failed = 0
-        for scoring in (False, True):
-            with ThreadPoolExecutor(max(1, args.jobs)) as pool:
-                failed += sum(not ok for ok in pool.map(launch, [t for t in todo if bool(ROWS[t[0]].scores) == scoring]))
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-    if stopping.is_set():
-        raise SystemExit(f"reproduce_table1: stopped by SIGTERM; {failed} runs unfinished (they resume next time)")
-    return failed
+        return run_jobs(jobs, threads, args.jobs, ROOT, args.address)
+    except Stopped as stop:
+        raise SystemExit(f"reproduce_table1: stopped by {stop.signal_name}; {stop.unfinished} runs unfinished (they "
+                         "resume next time)") from None
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS))
     parser.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
-    parser.add_argument("--jobs", type=int, default=1, help="runs trained at once")
+    parser.add_argument("--jobs", type=int, default=1, help="runs trained at once on this machine (on a Ray cluster "
+                        "its CPUs decide)")
+    parser.add_argument("--address", default=None, help="the Ray cluster to run on (ray start's address; default: "
+                        "RAY_ADDRESS, else a local Ray instance of jobs x threads CPUs)")
     parser.add_argument("--threads", type=int, default=None,
-                        help="torch threads per run (default: cores / jobs); beside other work on the machine use 1, "
-                             "since a run on 2 threads sharing a core with another process crawls (0.25 steps/s "
-                             "against 5.8 on 1 thread, measured)")
+                        help="torch threads per run, the CPUs its Ray task asks for (default: this machine's cores / "
+                             "jobs); beside other work on the machine use 1, since a run on 2 threads sharing a core "
+                             "with another process crawls (0.25 steps/s against 5.8 on 1 thread, measured)")
     parser.add_argument("--add-config", action="append", default=[], metavar="FILE",
                         help="a config added after each trained row's composition (smoke tests: "
                              "configs/parts/tiny.yaml); recorded in the run's composition")

@@ -130,7 +130,7 @@ def test_a_run_stopped_by_sigterm_resumes_is_recorded_once_and_refuses_another_c
     parent.send_signal(signal.SIGTERM)  # the parent stops its child: Lightning ends the fit at the next step
     stdout, stderr = parent.communicate(timeout=120)
     assert parent.returncode != 0 and "stopped by SIGTERM" in stderr, stderr[-2000:]
-    assert "random-seed0: stopped before writing its record" in stdout
+    assert "random-seed0: stopped before writing random-seed0.json" in stdout
     assert not (out / "table1_runs").exists()
     first = run("reproduce_table1", *args)  # resumes from the stopped run's checkpoint, to the tiny max_steps
     assert first.returncode == 0, first.stdout[-2000:] + first.stderr[-2000:]
@@ -156,6 +156,33 @@ def test_a_run_stopped_by_sigterm_resumes_is_recorded_once_and_refuses_another_c
         fit_and_test([ROOT / "configs/random.yaml", ROOT / TINY, lr], 0, ckpt / "random-seed0", eval_seed=0,
                      test_episodes=32)
     assert last.read_bytes() == before
+
+
+def test_two_rows_run_as_ray_tasks_and_a_second_invocation_trains_nothing(tmp_path, monkeypatch):
+    out, ckpt = tmp_path / "results", tmp_path / "ckpt"
+    args = ["--rows", "random", "line_scan", "--seeds", "0", "--test-episodes", "32", "--out", str(out), "--runs-dir",
+            str(ckpt), "--threads", "1", "--jobs", "2", "--add-config", TINY]
+    first = run("reproduce_table1", *args)
+    assert first.returncode == 0, first.stdout[-2000:] + first.stderr[-2000:]
+    assert "2 jobs on a local Ray instance (num_cpus=2), each a task of num_cpus=1" in first.stdout
+    for row in ("random", "line_scan"):
+        assert f"{row}-seed0: done in" in first.stdout
+        record = json.loads((out / "table1_runs" / f"{row}-seed0.json").read_text())
+        assert record["parallel_jobs"] == 2 and record["torch_threads"] == 1 and record["test_episodes"] == 32
+        log = (ckpt / f"{row}-seed0" / "log.txt").read_text()  # the child's log, headed by the Ray task that ran it
+        assert log.startswith(f"== {row}-seed0 on ") and "(Ray task " in log and f"--one {row} 0 " in log
+    again = run("reproduce_table1", *args)  # resumed from the records: nothing trained, no Ray started
+    assert again.returncode == 0 and "0 runs to train: none" in again.stdout and "jobs on" not in again.stdout
+    # a row that scores another row's checkpoints waits for that row's run of the same seed, and only for it
+    table1 = script("reproduce_table1")
+    asked = []
+    monkeypatch.setattr(table1, "run_jobs", lambda jobs, *rest: asked.extend(jobs) or 0)
+    monkeypatch.setattr(sys, "argv", ["reproduce_table1.py", "--out", str(tmp_path / "other"), "--rows",
+                                      "planner_copy_mixed", "planner_copy", "--seeds", "0", "1"])
+    table1.main()
+    assert [(j.name, j.after) for j in asked] == [
+        ("planner_copy-seed0", ()), ("planner_copy-seed1", ()), ("planner_copy_mixed-seed0", ("planner_copy-seed0",)),
+        ("planner_copy_mixed-seed1", ("planner_copy-seed1",))]
 
 
 def test_rows_scoring_planner_copy_read_its_checkpoints_and_feed_the_noise_study(tmp_path, monkeypatch):
