@@ -108,7 +108,7 @@ def run_jobs(jobs: Sequence[Job], cpus_per_job: int, at_once: int, cwd: Path, ad
     try:
         largest = max((node["Resources"].get("CPU", 0) for node in ray.nodes() if node["Alive"]), default=0)
         if cpus_per_job > largest:
-            raise ValueError(f"{cpus_per_job} CPUs per job: no node of {where} has that many (the largest {largest})")
+            raise ValueError(f"{cpus_per_job} CPUs per job: no node of {where} has that many (the largest {largest:g})")
         print(f"{len(jobs)} jobs on {where}, each a task of num_cpus={cpus_per_job}", flush=True)
         task = ray.remote(run_child).options(num_cpus=cpus_per_job, max_retries=0)
         refs: dict = {}
