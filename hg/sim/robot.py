@@ -165,15 +165,17 @@ class ProbeArm:
         cid, body, tool, joints, damping = self.client.id, self.body, self.tool, self.joints, self.damping
         ik, reset, link_state = (pybullet.calculateInverseKinematics, pybullet.resetJointStatesMultiDof,
                                  pybullet.getLinkState)
-        rows = []  # joint positions, then the tool's position and quaternion: one array built at the end
+        flat = []  # per target its joint positions, then the tool's position and quaternion: one array at the end
         for point, orientation, start in zip(points.tolist(), orientations.tolist(), starts.tolist()):
             q = ik(body, tool, point, orientation, currentPositions=start, jointDamping=damping,
                    maxNumIterations=iterations, residualThreshold=1e-6, physicsClientId=cid)
             reset(body, joints, [[v] for v in q], physicsClientId=cid)
             state = link_state(body, tool, computeForwardKinematics=True, physicsClientId=cid)
-            rows.append(q + state[4] + state[5])
-        rows = np.array(rows)
+            flat += q
+            flat += state[4]
+            flat += state[5]
         n_joints = len(joints)
+        rows = np.array(flat).reshape(len(points), n_joints + 7)
         qs, tips, quats = rows[:, :n_joints], rows[:, n_joints:n_joints + 3], rows[:, n_joints + 3:]
         for i in np.flatnonzero(((qs < self.lower) | (qs > self.upper)).any(axis=1)):
             qs[i] = np.clip(qs[i], self.lower, self.upper)

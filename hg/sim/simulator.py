@@ -103,6 +103,7 @@ class ProbeSimulator:
         slots = np.arange(self.batch_size)
         self.offsets = np.column_stack([(slots % SLOTS_PER_ROW) * SLOT_SPACING,
                                         (slots // SLOTS_PER_ROW) * SLOT_SPACING, np.zeros(len(slots))])
+        self.parking = self.offsets + (0.0, 0.0, PARK_DEPTH)  # where each slot's objects wait when not in use
         ground_shape = c.createCollisionShape(c.GEOM_PLANE)
         soil = c.createVisualShape(c.GEOM_BOX, halfExtents=[1.0, 1.0, 0.001], rgbaColor=[0.55, 0.45, 0.3, 0.4])
         ground = c.createMultiBody(0, ground_shape, soil)
@@ -116,13 +117,11 @@ class ProbeSimulator:
             visual = c.createVisualShape(c.GEOM_MESH, vertices=vertices, indices=indices,
                                          rgbaColor=[0.2, 0.45, 0.8, 1.0]) if self.visuals else -1
             for i in slots:
-                body = c.createMultiBody(0, shape, visual if i == 0 else -1, self._park(i))
+                body = c.createMultiBody(0, shape, visual if i == 0 else -1, self.parking[i].tolist())
                 c.setCollisionFilterGroupMask(body, -1, OBJECT_GROUP, OBJECT_GROUP)
                 self.bodies[k, i] = body
         self.active = np.full(self.batch_size, -1, dtype=np.int64)
 
-    def _park(self, slot: int) -> list[float]:
-        return (self.offsets[slot] + (0.0, 0.0, PARK_DEPTH)).tolist()
 
     def reset(self, labels: np.ndarray, poses: np.ndarray, seed: int | None = None) -> None:
         """Place episode i's object (class labels[i]) at poses[i] = (X, Y, Z, Rx, Ry, Rz in degrees).
@@ -153,8 +152,8 @@ class ProbeSimulator:
         n = len(labels)
         bodies = np.full(self.batch_size, -1, dtype=np.int64)
         bodies[:n] = self.bodies[labels, np.arange(n)]
-        moves = [(int(self.active[i]), self._park(i), (0, 0, 0, 1))
-                 for i in np.flatnonzero((self.active >= 0) & (self.active != bodies))]
+        leaving = np.flatnonzero((self.active >= 0) & (self.active != bodies))
+        moves = list(zip(self.active[leaving].tolist(), self.parking[leaving].tolist(), [(0, 0, 0, 1)] * len(leaving)))
         moves += zip(bodies[:n].tolist(), (self.offsets[:n] + poses[:, :3]).tolist(),
                      quaternions(poses[:, 3:]).tolist())
         return bodies, moves
