@@ -82,24 +82,28 @@ class Replay:
         return ProbeResult(points, None, None, None, points)
 
 
-def network_ms(model: pl.LightningModule, batch: dict, repeats: int) -> float:
-    """Median ms of one training step's arithmetic: a rollout replayed (policy and encoder steps), the loss pass,
-    backward and an Adam step, on one batch of real episodes."""
+def network_ms(model: pl.LightningModule, batch: dict, repeats: int) -> dict[str, float]:
+    """Median ms of one training step's arithmetic, by part: a rollout replayed (the policy's and encoder's steps),
+    the loss pass, backward with an Adam step; on one batch of real episodes."""
     labels, poses, seed = batch["labels"], batch["poses"], int(batch["seed"])
     replay = Replay(model.roll(labels, poses, seed).points, model.hparams.point_scale)
     regime = "reinforce" if model.policy.learned else "classify"
-    optimizer = torch.optim.Adam(model.parameters(), lr=1e-6)
+    optimizer = model.configure_optimizers()
     times = []
     for _ in range(repeats + 2):  # two untimed
-        start = time.perf_counter()
+        t0 = time.perf_counter()
         replayed = rollout(replay, model.policy, labels, poses, seed, model.hparams.n_probes, model.hparams.point_scale,
                            model.encoder)
+        t1 = time.perf_counter()
         terms, _ = model.evaluate(replayed, labels, regime)
+        t2 = time.perf_counter()
         optimizer.zero_grad()
         terms["loss"].backward()
         optimizer.step()
-        times.append(time.perf_counter() - start)
-    return 1000 * float(np.median(times[2:]))
+        times.append((t1 - t0, t2 - t1, time.perf_counter() - t2))
+    parts = 1000 * np.median(np.array(times[2:]), axis=0)
+    return {"network_ms": float(parts.sum()), "rollout_network_ms": float(parts[0]), "loss_pass_ms": float(parts[1]),
+            "backward_adam_ms": float(parts[2])}
 
 
 def main() -> None:
@@ -131,7 +135,7 @@ def main() -> None:
         val_seconds = time.perf_counter() - start
         data = run.datamodule
         run.model.attach(data.make_simulator())
-        arithmetic = network_ms(run.model, next(iter(data.train_dataloader())), args.network_repeats)
+        network = network_ms(run.model, next(iter(data.train_dataloader())), args.network_repeats)
         run.model.sim.close()
     step = timer.step_time / timer.steps
     sim_ms = 1000 * timer.sim_time / timer.steps
@@ -143,8 +147,8 @@ def main() -> None:
         "sim_fraction": round(timer.sim_time / timer.step_time, 3),
         "forward_fraction": round(1 - (timer.sim_time + timer.backward_time) / timer.step_time, 3),
         "backward_fraction": round(timer.backward_time / timer.step_time, 3),
-        "network_ms": round(arithmetic, 1),
-        "sim_fraction_ceiling": round(sim_ms / (sim_ms + arithmetic), 3),
+        **{k: round(v, 1) for k, v in network.items()},
+        "sim_fraction_ceiling": round(sim_ms / (sim_ms + network["network_ms"]), 3),
         "validation_s": round(val_seconds, 1),
         "projected_paper_minutes": round((paper_steps * step + paper_steps // val_every * val_seconds) / 60, 1),
         "threads": torch.get_num_threads(),
@@ -153,7 +157,7 @@ def main() -> None:
     print(f"{figures['step_ms']} ms per step: simulator {figures['sim_fraction']:.0%}, forward "
           f"{figures['forward_fraction']:.0%}, backward {figures['backward_fraction']:.0%}; one validation "
           f"{val_seconds:.1f} s; {paper_steps} steps projected at {figures['projected_paper_minutes']} min on "
-          f"{figures['host']}; the network's arithmetic alone {arithmetic:.1f} ms per step (simulator share at most "
+          f"{figures['host']}; the network's arithmetic alone {network['network_ms']:.1f} ms per step (simulator share at most "
           f"{figures['sim_fraction_ceiling']:.0%})")
     print(json.dumps(figures))
 
