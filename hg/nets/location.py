@@ -90,21 +90,23 @@ class LocationNetwork(PolicyState):
                 self.net[-1].weight[:action_dim].zero_()
                 self.net[-1].bias[:action_dim].zero_()
 
-    def state_input(self, state: Tensor) -> Tensor:
-        """The first layer's pre-activation from the state alone (its bias included): sampling reuses it for each of
-        the A components, so the state's columns, most of the first layer, are multiplied once per probe."""
-        first = self.net[0]
-        return F.linear(state, first.weight[:, :state.shape[-1]], first.bias)  # state inputs are never masked
+    def masked_layers(self) -> tuple[tuple[Tensor, Tensor], ...]:
+        """(weight * mask, bias) of the three MADE layers: sampling computes them once for its A passes."""
+        return tuple((layer.weight * layer.mask, layer.bias) for layer in self.net[::2])
 
     def distribution(self, state: Tensor, action: Tensor, offset: Tensor | None = None,
-                     state_input: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                     state_input: Tensor | None = None, layers: tuple | None = None) -> tuple[Tensor, Tensor]:
         """(mu, sigma) of every component, (..., D), (..., A) -> (..., A) twice; masking lets mu_j, sigma_j
         see only action[..., :j]. mu = tanh(.), sigma = (std_floor + (std_max - std_floor) * sigmoid(.)) * std_scale.
-        state_input: `state_input(state)`, when already computed."""
-        first = self.net[0]
-        hidden = (self.state_input(state) if state_input is None else state_input) + F.linear(
-            action, (first.weight * first.mask)[:, state.shape[-1]:])
-        mu, pre_sigma = self.net[4](self.net[3](self.net[2](self.net[1](hidden)))).chunk(2, -1)  # no slice: it builds a module
+        Sampling passes what is the same for its A passes: `masked_layers()`, and `state_input`, the first layer's
+        pre-activation from the state alone (bias included), so the state's columns, most of the first layer, are
+        multiplied once per probe, not once per component."""
+        (w1, b1), (w2, b2), (w3, b3) = self.masked_layers() if layers is None else layers
+        d = state.shape[-1]
+        if state_input is None:
+            state_input = F.linear(state, w1[:, :d], b1)
+        hidden = F.elu(state_input + F.linear(action, w1[:, d:]))  # self.net's layers, written out
+        mu, pre_sigma = F.linear(F.elu(F.linear(hidden, w2, b2)), w3, b3).chunk(2, -1)
         if offset is not None:  # a prior request schedule, added before the tanh (beyond the paper)
             mu = mu + offset
         sigma = self.std_floor + (self.std_max - self.std_floor) * torch.sigmoid(pre_sigma)
@@ -125,9 +127,10 @@ class LocationNetwork(PolicyState):
         else:
             eps = torch.zeros(shape, device=state.device, dtype=state.dtype)
         action = torch.zeros_like(eps)
-        state_input = self.state_input(state)
+        layers = self.masked_layers()
+        state_input = F.linear(state, layers[0][0][:, :state.shape[-1]], layers[0][1])
         for j in range(self.action_dim):
-            mu, sigma = self.distribution(state, action, offset, state_input)
+            mu, sigma = self.distribution(state, action, offset, state_input, layers)
             value = mu[..., j] + sigma[..., j] * eps[..., j]
             for _ in range(100 if self.truncated else 0):  # re-draw what fell outside [-1, 1]
                 outside = value.abs() > 1
