@@ -86,6 +86,30 @@ def time_pair(sim: ProbeSimulator, work: list[tuple], prepared: list[tuple]) -> 
     return simulator, bare
 
 
+def breakdown(sim: ProbeSimulator, work: list[tuple], prepared: list[tuple]) -> dict[str, float]:
+    """Microseconds per probe step inside the simulator (its reset, probe, the arm's reach, place and retries, the ray
+    cast) and of the bare calls, from one more pass with those methods timed (the timers cost a little themselves)."""
+    spent: dict[str, float] = {}
+    targets = {"reset": sim, "probe": sim, "cast_rays": sim.client}
+    if sim.arm is not None:
+        targets |= {"reach": sim.arm, "place": sim.arm, "_retry": sim.arm}
+    for name, owner in targets.items():
+        def timed(*args, _original=getattr(owner, name), _name=name, **kwargs):
+            start = time.perf_counter()
+            try:
+                return _original(*args, **kwargs)
+            finally:
+                spent[_name] = spent.get(_name, 0.0) + time.perf_counter() - start
+        setattr(owner, name, timed)
+    try:
+        spent["bare"] = time_pair(sim, work, prepared)[1]
+    finally:
+        for name, owner in targets.items():
+            delattr(owner, name)  # the instance attribute goes; the class's method is back
+    steps = sum(len(requests) for _, _, requests in work)
+    return {name: round(1e6 * seconds / steps, 1) for name, seconds in spent.items()}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--batch-size", type=int, default=64)
@@ -93,6 +117,7 @@ def main() -> None:
     parser.add_argument("--arm-batches", type=int, default=20)
     parser.add_argument("--ideal-batches", type=int, default=200)
     parser.add_argument("--repeats", type=int, default=7, help="interleaved (simulator, bare) timing pairs, >= 5")
+    parser.add_argument("--breakdown", action="store_true", help="also time the simulator's parts (us per probe step)")
     args = parser.parse_args()
     if args.repeats < 5:
         parser.error(f"--repeats {args.repeats}: the ratios are medians of at least 5 pairs")
@@ -104,6 +129,9 @@ def main() -> None:
             n = n_batches * args.probes * args.batch_size
             time_pair(sim, work, prepared)  # one untimed pass: caches and allocations settle
             pairs = np.array([time_pair(sim, work, prepared) for _ in range(args.repeats)])
+            if args.breakdown:
+                figures[f"{mode}_us_per_step"] = breakdown(sim, work, prepared)
+                print(f"{mode:5s}: us per probe step {figures[f'{mode}_us_per_step']}")
         ratios = pairs[:, 1] / pairs[:, 0]
         figures.update({f"{mode}_probes_per_s": round(n / float(np.median(pairs[:, 0])), 1),
                         f"bare_{mode}_probes_per_s": round(n / float(np.median(pairs[:, 1])), 1),
