@@ -45,17 +45,18 @@ class BulletClient:
     def cast_rays(self, starts: np.ndarray, ends: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Cast rays that can only hit objects; returns (hit (n,), hit position (n, 3))."""
         n = len(starts)
-        results = []
+        hit = np.zeros(n, dtype=bool)
+        position = np.zeros((n, 3))
         for lo in range(0, n, RAY_CHUNK):
             hi = min(lo + RAY_CHUNK, n)
-            chunk = pybullet.rayTestBatch(rayFromPositions=np.ascontiguousarray(starts[lo:hi], dtype=np.float64),
-                                          rayToPositions=np.ascontiguousarray(ends[lo:hi], dtype=np.float64),
-                                          collisionFilterMask=OBJECT_GROUP, physicsClientId=self.id)
-            if len(chunk) != hi - lo:
-                raise RuntimeError(f"rayTestBatch returned {len(chunk)} results for {hi - lo} rays")
-            results += chunk
-        hit = np.fromiter((r[0] for r in results), np.int64, n) >= 0
-        position = np.zeros((n, 3))
-        if hit.any():  # only the touches' positions are read: most rays miss
-            position[hit] = [r[3] for r in results if r[0] >= 0]
+            results = pybullet.rayTestBatch(rayFromPositions=np.ascontiguousarray(starts[lo:hi], dtype=np.float64),
+                                            rayToPositions=np.ascontiguousarray(ends[lo:hi], dtype=np.float64),
+                                            collisionFilterMask=OBJECT_GROUP, physicsClientId=self.id)
+            if len(results) != hi - lo:
+                raise RuntimeError(f"rayTestBatch returned {len(results)} results for {hi - lo} rays")
+            touched = [(lo + i, r[3]) for i, r in enumerate(results) if r[0] >= 0]  # one pass; most rays miss
+            if touched:
+                index, where = zip(*touched)
+                hit[list(index)] = True
+                position[list(index)] = where
         return hit, position
