@@ -10,7 +10,10 @@ teacher file of seed S was planned over). The library is read in ideal mode; `--
 with the arm (--robot), `--noise RATE` through a sensor with contact faults (the planner weighs with the sensor's
 model and may probe a candidate again), and `--table-episodes` scores the very episodes the tables score.
 The library holds training poses (`--library-split train`, the default); `--library-split val` lets it see the
-held-out positions it is scored on: a ceiling of what adaptive probes can say, never a result.
+held-out positions it is scored on: a ceiling of what adaptive probes can say, never a result. By default the
+classifier keeps per episode only the library episodes within exp(-20) of its best and the planner ranks candidates on
+samples of them (hg.planner.GreedyPlanner; 8x as fast at the same accuracy: scripts/bench_planner.py); `--exact` weighs
+the whole library, as every planner reading made before it did.
 
 `--save-rollouts FILE` writes the planner's episodes as a teacher file for a policy to copy (hg.planner.save_teacher:
 schema 1, with the world, seeds, candidate grid and library recipe it was planned with).
@@ -23,7 +26,7 @@ Last line: JSON {"planner" [and "fixed", "random"]: {"accuracy": [after probe 1,
 "touches_first_half": .., "tilt_deg": .., "leaning_towards_object": .., "leaning_along_line": .., "places": ..,
 "repeats": ..}, "objects": .., "eval_seed": .., "library": .., "library_split": .., "library_seed": .., "shifts": ..,
 "mirror": .., "library_episodes": .., "noise": .., "episodes": .., "split": .., "mode": .., "table_episodes": ..,
-"candidates": .., "along_leans": ..}.
+"candidates": .., "along_leans": .., "planner_settings": {"prune": .., "samples": .., "refine": ..}}.
 """
 from __future__ import annotations
 
@@ -95,6 +98,8 @@ def main() -> None:
                         help="sensor fault rate of the scored episodes' probes: SensorNoise(miss_prob = "
                              "false_contact_prob = rate); the planner weighs with the sensor's model and may re-probe")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--exact", action="store_true", help="weigh the whole library (the reference planner, ~8x "
+                        "slower) instead of each episode's kept library episodes")
     parser.add_argument("--save-rollouts", type=Path, help="write the planner's episodes here (.npz): a teacher")
     args = parser.parse_args()
     for name in ("episodes", "library", "n_probes", "places"):
@@ -146,7 +151,8 @@ def main() -> None:
     regions = make_regions(args.regions, scene, args.eval_seed)
     labels, poses = scored_episodes(regions, args.split, args.episodes, len(object_set), args.seed, args.table_episodes)
     result = evaluate(object_set, labels, poses, regions, robot=args.robot, mode=args.mode, noise=noise, grid=grid,
-                      recipe=recipe, bin=args.bin, n_probes=args.n_probes, probers=probers, seed=args.seed)
+                      recipe=recipe, bin=args.bin, n_probes=args.n_probes, probers=probers, seed=args.seed,
+                      exact=args.exact)
     for name, rollouts in result.rollouts.items():
         r = rollouts.summary
         print(f"{name}: accuracy after each probe " + " ".join(f"{a:.3f}" for a in r["accuracy"])
@@ -160,13 +166,14 @@ def main() -> None:
         save_teacher(args.save_rollouts, labels, poses, planner.requests, object_set_name=object_set.name,
                      classes=object_set.names, regions=regions, robot=repo_path(args.robot), mode=args.mode,
                      noise=noise, seed=args.seed, grid=grid, recipe=recipe, bin=args.bin, faults=result.faults,
-                     summary=planner.summary)
+                     summary=planner.summary, settings=result.settings)
     print(json.dumps({name: rollouts.summary for name, rollouts in result.rollouts.items()} | {
         "objects": object_set.name, "eval_seed": args.eval_seed, "library": args.library,
         "library_split": args.library_split, "library_seed": library_seed, "shifts": args.shifts,
         "mirror": args.mirror, "library_episodes": result.library_episodes, "noise": args.noise,
         "episodes": len(labels), "split": args.split, "mode": args.mode, "table_episodes": args.table_episodes,
-        "candidates": len(grid.requests()), "along_leans": args.along_leans}))
+        "candidates": len(grid.requests()), "along_leans": args.along_leans,
+        "planner_settings": result.settings}))
 
 
 if __name__ == "__main__":

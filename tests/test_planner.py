@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from hg.planner import (MISS, CandidateGrid, LibraryClassifier, LibraryRecipe, evaluate, load_teacher, read_meta,
-                        save_teacher, teacher_library, teacher_meta)
+from hg.planner import (MISS, CandidateGrid, GreedyPlanner, LibraryClassifier, LibraryRecipe, evaluate, load_teacher,
+                        plan, read_meta, save_teacher, teacher_library, teacher_meta)
 from hg.sim import PoseRegions, ProbeSimulator, Scene, SensorNoise, sample_episodes
 from hg.sim.heldout import AcrossLineRegions
 from hg.planner.library import readings
@@ -145,6 +145,7 @@ def test_plan_writes_a_teacher_that_loads_with_its_provenance(tmp_path):
     assert meta["robot"] == "urdf/hg_probe_arm.urdf" and meta["mode"] == "ideal" and meta["noise"] == 0.0
     assert (meta["seed"], meta["library_seed"], meta["eval_seed"], meta["library"], meta["places"]) == (4, 4, 0, 128, 3)
     assert meta["summary"] == result["planner"] and meta["commit"]
+    assert meta["planner_settings"] == result["planner_settings"] == {"prune": 20.0, "samples": 512, "refine": 3}
     bad = subprocess.run([sys.executable, str(ROOT / "scripts" / "plan.py"), "--fixed", "--n-probes", "12"],
                          capture_output=True, text=True, env=ENV, timeout=300)
     assert bad.returncode != 0 and "--fixed: the straight scan probes each of the 11 places once" in bad.stderr
@@ -209,3 +210,65 @@ def test_old_teacher_files_load_as_schema_0_checked_on_what_they_carry():
         load_teacher([old], **world, noise=rate)
     with pytest.raises(ValueError, match=f"{old}: teacher meta objects='hg4', this run has 'other'"):
         load_teacher([old], **(world | {"object_set_name": "other"}))
+
+
+def synthetic(n_library: int = 400, n_candidates: int = 12,
+              seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A random library of 3 classes (readings in [0, 0.3] m or MISS), with no symmetry to make candidates tie, and
+    24 episodes reading like its episodes give or take 2 mm."""
+    rng = np.random.default_rng(seed)
+    library = np.where(rng.random((n_library, n_candidates)) < 0.4, MISS,
+                       rng.uniform(0, 0.3, (n_library, n_candidates)))
+    query = library[rng.integers(n_library, size=24)]
+    query = np.where(query == MISS, MISS, query + rng.normal(0, 0.002, query.shape))
+    return (torch.from_numpy(library).float(), torch.from_numpy(rng.integers(3, size=n_library)),
+            torch.from_numpy(query).float())
+
+
+@pytest.mark.parametrize("noise", [SensorNoise(), SensorNoise(miss_prob=0.1, false_contact_prob=0.05)])
+def test_a_pruned_classifier_keeps_the_exact_log_weights_and_drops_only_those_below_the_margin(noise):
+    library, labels, query = synthetic()
+    exact = LibraryClassifier(library, labels, 3, sigma=0.01, mismatch=1e-3, noise=noise, probe_length=0.6)
+    pruned = LibraryClassifier(library, labels, 3, sigma=0.01, mismatch=1e-3, noise=noise, probe_length=0.6,
+                               prune=6.0)
+    chosen = torch.stack([torch.randperm(12, generator=torch.Generator().manual_seed(i))[:5] for i in range(24)])
+    read = query.gather(1, chosen)
+    log_w, kept = exact.prior(24), pruned.prior(24)
+    dropped = [0] * 24
+    for k in range(5):
+        exact.update(log_w, chosen[:, k], read[:, k])
+        before = [None if state is None else state.index for state in kept]
+        pruned.update(kept, chosen[:, k], read[:, k])
+        for b, state in enumerate(kept):
+            # the kept episodes' log weights are the exact classifier's, to the bit (the same operations)
+            np.testing.assert_array_equal(state.log_w, log_w[b, state.index].numpy())
+            gone = np.setdiff1d(np.arange(len(labels)) if before[b] is None else before[b], state.index)
+            assert (log_w[b, gone] < log_w[b, state.index].max() - 6.0).all()  # dropped: below the margin then
+            dropped[b] += len(gone)
+    assert sum(dropped) > 0
+    # a margin nothing falls below: the class posterior and the names are the exact classifier's
+    positions = torch.rand(len(labels), 2, generator=torch.Generator().manual_seed(0))
+    exact = LibraryClassifier(library, labels, 3, sigma=0.01, mismatch=1e-3, noise=noise, probe_length=0.6,
+                              positions=positions)
+    lossless = LibraryClassifier(library, labels, 3, sigma=0.01, mismatch=1e-3, noise=noise, probe_length=0.6,
+                                 positions=positions, prune=1e9)
+    torch.testing.assert_close(lossless(chosen, read), exact(chosen, read), rtol=0, atol=1e-5)
+    # (the spread along the line, a difference of squares in float32, rounds to within 1e-4)
+    torch.testing.assert_close(lossless.beliefs(chosen, read), exact.beliefs(chosen, read), rtol=0, atol=1e-4)
+    with pytest.raises(ValueError, match="prune=0.0 must be > 0"):
+        LibraryClassifier(library, labels, 3, sigma=0.01, mismatch=1e-3, prune=0.0)
+
+
+@pytest.mark.parametrize("samples, refine", [(10 ** 6, 1), (2, 12)])
+def test_a_lossless_pruned_planner_chooses_as_the_exact_planner(samples, refine):
+    """Nothing pruned, and either every kept episode weighed (no draws) or two draws per class ranking the candidates
+    and every candidate refined over every kept episode: the choices and names are the exact planner's (a sigma of 3 cm
+    keeps the posteriors short of certainty, where candidates leaving no entropy would tie)."""
+    library, labels, query = synthetic()
+    exact = LibraryClassifier(library, labels, 3, sigma=0.03, mismatch=1e-3)
+    pruned = LibraryClassifier(library, labels, 3, sigma=0.03, mismatch=1e-3, prune=1e9)
+    chosen, named = plan(exact, query, 6, GreedyPlanner(exact, 0.01))
+    fast_chosen, fast_named = plan(pruned, query, 6, GreedyPlanner(pruned, 0.01, samples, refine))
+    np.testing.assert_array_equal(fast_chosen, chosen)
+    np.testing.assert_array_equal(fast_named, named)
+    assert len(set(chosen[:, 1].tolist())) > 1  # the choices depend on the readings

@@ -45,11 +45,11 @@ def fault_rate(noise: SensorNoise) -> float:
 def save_teacher(path: str | Path, labels: np.ndarray, poses: np.ndarray, requests: np.ndarray, *,
                  object_set_name: str, classes: tuple[str, ...], regions: Regions, robot: str | Path, mode: str,
                  noise: SensorNoise, seed: int, grid: CandidateGrid, recipe: LibraryRecipe, bin: float,
-                 faults: np.ndarray | None = None, summary: dict | None = None) -> dict:
+                 faults: np.ndarray | None = None, summary: dict | None = None, settings: dict | None = None) -> dict:
     """Write a teacher file in one atomic write: the planner's episodes (labels (E,), poses (E, 6)), the requests it
     chose (E, N, 4), under sensor faults the (E, N, 2) fault uniforms its probes read with, and their provenance
-    (schema 1: the world, the seeds, the grid, the recipe, the commit; `summary` of the planner's run). Returns the
-    meta written."""
+    (schema 1: the world, the seeds, the grid, the recipe, the commit; `summary` of the planner's run and its
+    `settings`, Evaluation.settings). Returns the meta written."""
     e = len(labels)
     if poses.shape != (e, 6) or requests.ndim != 3 or requests.shape[0] != e or requests.shape[2] != 4:
         raise ValueError(f"save_teacher: {path}: labels {labels.shape}, poses {poses.shape} and requests "
@@ -62,7 +62,8 @@ def save_teacher(path: str | Path, labels: np.ndarray, poses: np.ndarray, reques
     meta = {"schema": SCHEMA, "objects": object_set_name, "classes": list(classes), "scene": asdict(regions.scene),
             "eval_seed": regions.seed, "regions": regions.meta(), "robot": str(robot), "mode": mode,
             "noise": rate, "sensor": asdict(noise), "seed": seed, "episodes": e, "n_probes": requests.shape[1],
-            **grid.meta(), **recipe.meta(), "bin": bin, "commit": commit(("hg", "scripts")), "summary": summary}
+            **grid.meta(), **recipe.meta(), "bin": bin, "commit": commit(("hg", "scripts")), "summary": summary,
+            "planner_settings": settings}
     buffer = io.BytesIO()
     np.savez_compressed(buffer, labels=labels, poses=poses, requests=requests.astype(np.float32),
                         meta=np.array(json.dumps(meta)), **({} if faults is None else {"faults": faults}))
