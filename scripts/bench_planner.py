@@ -22,9 +22,9 @@ clock). `--profile` prints cProfile's top functions of one chunk for each planne
 
     .venv/bin/python scripts/bench_planner.py
 
-Last line: JSON {"reference_decisions_per_s", "decisions_per_s", "speedup", "reference_acc5", "acc5",
-"reference_acc10", "acc10", "learned_decisions_per_s", "episodes", "library_size", "prune", "samples", "refine",
-"host", "commit"}.
+Last line: JSON {"reference_decisions_per_s", "decisions_per_s", "speedup" (of the medians), "speedup_spread" (the
+smallest and largest ratio of one chunk's two timings), "reference_acc5", "acc5", "reference_acc10", "acc10",
+"learned_decisions_per_s", "episodes", "library_size", "prune", "samples", "refine", "host", "commit"}.
 """
 from __future__ import annotations
 
@@ -117,6 +117,7 @@ def main() -> None:
             seconds[name].append(time.perf_counter() - begin)
     sizes = np.diff(list(range(0, len(query), CHUNK)) + [len(query)])
     rate = {name: float(np.median(sizes * N_PROBES / np.array(s))) for name, s in seconds.items()}
+    ratios = np.array(seconds["reference"]) / np.array(seconds["default"])  # chunk by chunk, side by side in time
     named = {name: np.concatenate(n) for name, n in named.items()}
 
     encoder = PCRN()
@@ -129,16 +130,18 @@ def main() -> None:
 
     result = {"reference_decisions_per_s": round(rate["reference"], 1), "decisions_per_s": round(rate["default"], 1),
               "speedup": round(rate["default"] / rate["reference"], 2),
+              "speedup_spread": [round(float(ratios.min()), 2), round(float(ratios.max()), 2)],
               "reference_acc5": accuracy(named["reference"], labels2, 5),
               "acc5": accuracy(named["default"], labels2, 5),
               "reference_acc10": accuracy(named["reference"], labels2, 10),
               "acc10": accuracy(named["default"], labels2, 10), "learned_decisions_per_s": round(learned, 1),
               "episodes": len(query), "library_size": len(library[0]), "prune": PRUNE, "samples": SAMPLES,
               "refine": REFINE, "host": hardware(), "commit": commit()}
-    print(f"reference {result['reference_decisions_per_s']} decisions/s, default {result['decisions_per_s']} "
-          f"({result['speedup']}x), learned policy {result['learned_decisions_per_s']}; accuracy after 5 / 10 probes: "
-          f"reference {result['reference_acc5']} / {result['reference_acc10']}, default {result['acc5']} / "
-          f"{result['acc10']} ({len(query)} validation episodes, {len(library[0])} library episodes)", flush=True)
+    spread = f"chunk by chunk {ratios.min():.2f}x to {ratios.max():.2f}x"
+    print(f"reference {rate['reference']:.1f} decisions/s, default {rate['default']:.1f} ({result['speedup']}x; "
+          f"{spread}), learned policy {learned:.1f}; accuracy after 5 / 10 probes: reference "
+          f"{result['reference_acc5']} / {result['reference_acc10']}, default {result['acc5']} / {result['acc10']} "
+          f"({len(query)} validation episodes, {len(library[0])} library episodes)", flush=True)
     print(json.dumps(result))
 
 
