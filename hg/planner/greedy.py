@@ -6,8 +6,8 @@ entropy over the class, expected over the weighted library (readings binned by `
 classifier names the class. `evaluate` scores it on given episodes beside probes placed by no one (the straight
 centre-out scan of the candidate places, unprobed candidates at random) named by the same classifier; under sensor
 faults the planner weighs with the sensor's model and may probe a candidate again. By default it weighs a pruned
-classifier's kept library episodes and ranks its candidates on a sample of them (GreedyPlanner): 8x as many decisions
-per second as weighing the whole library (`exact`, the reference), at its accuracy (scripts/bench_planner.py).
+classifier's kept library episodes and ranks its candidates on a sample of them (GreedyPlanner): 7.5x as many
+decisions per second as weighing the whole library (`exact`, the reference), at its accuracy (docs/benchmarks.md).
 """
 from __future__ import annotations
 
@@ -268,7 +268,7 @@ def evaluate(objects: str | Path | ObjectSet, labels: np.ndarray, poses: np.ndar
     one), through a sensor with faults `noise` (contact faults only: each probe's fault uniforms are drawn with
     seed + 2, so that a teacher file can replay them). The classifier keeps per episode the library episodes within
     PRUNE of its best and the planner ranks on samples of them (GreedyPlanner), and every prober's probes are named
-    by it; `exact` weighs the whole library (the reference, ~8x slower)."""
+    by it; `exact` weighs the whole library (the reference, 7.5x slower)."""
     if unknown := sorted(set(probers) - set(PROBERS)):
         raise ValueError(f"evaluate: probers {unknown}, expected some of {PROBERS}")
     candidates = grid.requests()
