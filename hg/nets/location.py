@@ -94,6 +94,12 @@ class LocationNetwork(PolicyState):
         """(weight * mask, bias) of the three MADE layers: sampling computes them once for its A passes."""
         return tuple((layer.weight * layer.mask, layer.bias) for layer in self.net[::2])
 
+    @staticmethod
+    def state_input(state: Tensor, layers: tuple) -> Tensor:
+        """The first layer's pre-activation from the state alone, bias included (`masked_layers()` as layers)."""
+        weight, bias = layers[0]
+        return F.linear(state, weight[:, :state.shape[-1]], bias)
+
     def distribution(self, state: Tensor, action: Tensor, offset: Tensor | None = None,
                      state_input: Tensor | None = None, layers: tuple | None = None) -> tuple[Tensor, Tensor]:
         """(mu, sigma) of every component, (..., D), (..., A) -> (..., A) twice; masking lets mu_j, sigma_j
@@ -101,11 +107,11 @@ class LocationNetwork(PolicyState):
         Sampling passes what is the same for its A passes: `masked_layers()`, and `state_input`, the first layer's
         pre-activation from the state alone (bias included), so the state's columns, most of the first layer, are
         multiplied once per probe, not once per component."""
-        (w1, b1), (w2, b2), (w3, b3) = self.masked_layers() if layers is None else layers
-        d = state.shape[-1]
+        layers = self.masked_layers() if layers is None else layers
+        (w1, _), (w2, b2), (w3, b3) = layers
         if state_input is None:
-            state_input = F.linear(state, w1[:, :d], b1)
-        hidden = F.elu(state_input + F.linear(action, w1[:, d:]))  # self.net's layers, written out
+            state_input = self.state_input(state, layers)
+        hidden = F.elu(state_input + F.linear(action, w1[:, state.shape[-1]:]))  # self.net's layers, written out
         mu, pre_sigma = F.linear(F.elu(F.linear(hidden, w2, b2)), w3, b3).chunk(2, -1)
         if offset is not None:  # a prior request schedule, added before the tanh (beyond the paper)
             mu = mu + offset
@@ -128,7 +134,7 @@ class LocationNetwork(PolicyState):
             eps = torch.zeros(shape, device=state.device, dtype=state.dtype)
         action = torch.zeros_like(eps)
         layers = self.masked_layers()
-        state_input = F.linear(state, layers[0][0][:, :state.shape[-1]], layers[0][1])
+        state_input = self.state_input(state, layers)
         for j in range(self.action_dim):
             mu, sigma = self.distribution(state, action, offset, state_input, layers)
             value = mu[..., j] + sigma[..., j] * eps[..., j]
