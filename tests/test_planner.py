@@ -272,3 +272,33 @@ def test_a_lossless_pruned_planner_chooses_as_the_exact_planner(samples, refine)
     np.testing.assert_array_equal(fast_chosen, chosen)
     np.testing.assert_array_equal(fast_named, named)
     assert len(set(chosen[:, 1].tolist())) > 1  # the choices depend on the readings
+
+
+def test_the_planners_draws_keep_each_class_weight_and_approach_the_exact_cell_sums():
+    """hg.planner.kernels.sampled_mass: a class with more kept episodes than samples is drawn at every 1/samples of
+    its weight, so its cells still sum to its weight, and draws fall on episodes in proportion to theirs; a class with
+    fewer is summed whole, as candidate_mass sums it."""
+    from hg.planner.kernels import candidate_mass, class_sums, sampled_mass
+    rng = np.random.default_rng(0)
+    n_candidates, size = 3, 8  # cells per candidate
+    columns = rng.integers(0, size, (n_candidates, 1000)).astype(np.int32)
+    codes = np.ascontiguousarray(columns.T + np.arange(n_candidates, dtype=np.int32) * size)
+    index = np.sort(rng.choice(1000, 700, replace=False)).astype(np.int32)
+    weight = rng.random(700).astype(np.float32) ** 4  # uneven
+    ends = np.array([600, 700])  # class 0: 600 kept episodes, drawn; class 1: 100, summed whole
+    mass = class_sums(weight, ends)
+    np.testing.assert_allclose(mass, [weight[:600].sum(), weight[600:].sum()], rtol=1e-6)
+    exact = candidate_mass(columns, np.arange(n_candidates), index, weight, size)
+    error = {}
+    for samples in (32, 512):
+        drawn, any_drawn = sampled_mass(codes, index, weight, ends, mass, samples, n_candidates * size)
+        assert any_drawn
+        assert drawn.sum() == pytest.approx(n_candidates * mass.sum())
+        error[samples] = np.abs(drawn - exact).sum() / exact.sum()
+    # the cells' weights by draws come closer to the exact sums with more draws (0.25, then 0.03, of the weight)
+    assert 0 < error[512] < 0.05 < error[32]
+    # class 1 alone, fewer episodes than samples: summed whole, exactly
+    alone, any_drawn = sampled_mass(codes, index[600:], weight[600:], np.array([0, 100]), class_sums(
+        weight[600:], np.array([0, 100])), 128, n_candidates * size)
+    assert not any_drawn
+    np.testing.assert_allclose(alone, candidate_mass(columns, np.arange(n_candidates), index[600:], weight[600:], size))

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from hg.planner.kernels import class_sums, likelihood_update
 from hg.planner.library import MISS, CandidateGrid, LibraryRecipe
 from hg.sim.heldout import Regions
 from hg.sim.simulator import ProbeSimulator, SensorNoise
@@ -28,6 +29,17 @@ Choose = Callable[[int, Tensor, Tensor], Tensor]
 Read = Callable[[int, Tensor], Tensor]
 
 
+def likelihood_terms(sigma: float, mismatch: float, noise: SensorNoise = SensorNoise(),
+                     probe_length: float = 1.0) -> tuple[float, float, float, float, float]:
+    """log_likelihood's numbers: the touch's Gaussian spread, and the log-likelihood where both missed, where only
+    the library episode touched, where only the reading did, and the Gaussian's offset where both touched."""
+    sigma = math.hypot(sigma, noise.position_std)
+    kept = lambda p: math.log1p(-min(p, 1 - 1e-12))  # log(1 - p): a reading the fault left alone
+    false_touch = noise.false_contact_prob * sigma * math.sqrt(2 * math.pi) / probe_length  # on the Gaussian's scale
+    return (sigma, kept(noise.false_contact_prob), math.log(max(noise.miss_prob, mismatch)),
+            math.log(max(false_touch, mismatch)), kept(noise.miss_prob))
+
+
 def log_likelihood(readings: Tensor, library: Tensor, sigma: float, mismatch: float,
                    noise: SensorNoise = SensorNoise(), probe_length: float = 1.0) -> Tensor:
     """log p(each episode's reading (Q, 1) | each library episode's reading (Q, L)), up to a constant: a Gaussian in
@@ -36,21 +48,14 @@ def log_likelihood(readings: Tensor, library: Tensor, sigma: float, mismatch: fl
     miss_prob, a miss as a touch anywhere along the probe_length-long ray with false_contact_prob, and the touch
     point is blurred by position_std; `mismatch` stays the floor of either mix-up (the library is read in ideal mode,
     the arm's probes stray). Without faults this is the plain rule."""
-    sigma = math.hypot(sigma, noise.position_std)
-    kept = lambda p: math.log1p(-min(p, 1 - 1e-12))  # log(1 - p): a reading the fault left alone
+    sigma, both_missed, library_touched, library_missed, both_touched = likelihood_terms(sigma, mismatch, noise,
+                                                                                         probe_length)
     touched = readings != MISS
-    false_touch = noise.false_contact_prob * sigma * math.sqrt(2 * math.pi) / probe_length  # on the Gaussian's scale
-    if readings.numel() == 1:  # one episode's reading (a pruned classifier's update): the same numbers, fewer passes
-        if readings.item() == MISS:
-            return torch.where(library == MISS, kept(noise.false_contact_prob),
-                               math.log(max(noise.miss_prob, mismatch)))
-        out = (library - readings).div_(sigma).square_().mul_(-0.5).add_(kept(noise.miss_prob))
-        return out.masked_fill_(library == MISS, math.log(max(false_touch, mismatch)))
     # in place over (Q, L), the classifier's and the planner's costliest step: 2.4x faster than torch.where over
-    # fresh tensors, to the bit (the same operations in the same order)
-    out = (library - readings).div_(sigma).square_().mul_(-0.5).add_(kept(noise.miss_prob))  # both touched
-    out.masked_fill_(~touched.expand_as(out), math.log(max(noise.miss_prob, mismatch)))  # a touch read as a miss
-    library_missed = torch.where(touched, math.log(max(false_touch, mismatch)), kept(noise.false_contact_prob))
+    # fresh tensors, to the bit (the same operations in the same order; hg.planner.kernels repeats them for one reading)
+    out = (library - readings).div_(sigma).square_().mul_(-0.5).add_(both_touched)  # both touched
+    out.masked_fill_(~touched.expand_as(out), library_touched)  # a touch read as a miss
+    library_missed = torch.where(touched, library_missed, both_missed)
     return torch.where(library == MISS, library_missed.to(out.dtype), out)
 
 
@@ -58,31 +63,21 @@ def log_likelihood(readings: Tensor, library: Tensor, sigma: float, mismatch: fl
 class Kept:
     """One episode's library weights as a pruned classifier keeps them: the library episodes within `prune` of its best
     log weight, by position in the classifier's library (ascending, so each class is one slice, ending before
-    ends[class]), their log weights, their weights relative to the best and the weights' running sum (what the class
+    ends[class]), their log weights, their weights relative to the best and those summed by class (what the class
     posterior and the planner's samples read). Never changed in place: episodes whose readings so far are the same share
     one (LibraryClassifier.update)."""
 
-    index: np.ndarray  # (S,) int64
+    index: np.ndarray  # (S,) int32
     log_w: np.ndarray  # (S,) float32
-    weight: np.ndarray  # (S,) float64, exp(log_w - max)
-    cumulative: np.ndarray  # (S,) float64, weight's running sum
+    weight: np.ndarray  # (S,) float32, exp(log_w - max), as the exact planner weighs
     ends: np.ndarray  # (classes,)
+    class_mass: np.ndarray  # (classes,) float64, weight summed by class
 
     @classmethod
-    def keep(cls, index: np.ndarray | None, log_w: np.ndarray, prune: float, class_ends: np.ndarray) -> "Kept":
-        """The library episodes `index` (None: all) whose log weights log_w lie within `prune` of the best."""
-        best = log_w.max()
-        if len(kept := np.flatnonzero(log_w >= best - prune)) < len(log_w):
-            index, log_w = kept if index is None else index.take(kept), log_w.take(kept)
-        elif index is None:
-            index = kept
-        weight = np.exp(log_w - best, dtype=np.float64)  # float64: what np.bincount adds
-        cumulative = torch.cumsum(torch.from_numpy(weight), 0).numpy()  # 3x as fast as numpy's here
-        return cls(index, log_w, weight, cumulative, np.searchsorted(index, class_ends))
-
-    def class_mass(self) -> np.ndarray:
-        """(classes,) the weights summed by class."""
-        return np.diff(self.cumulative.take(self.ends - 1, mode="clip") * (self.ends > 0), prepend=0.0)
+    def weigh(cls, index: np.ndarray, log_w: np.ndarray, best: np.float32, class_ends: np.ndarray) -> "Kept":
+        """The kept library episodes `index` with log weights log_w, the best of which is `best`."""
+        weight, ends = np.exp(log_w - best), np.searchsorted(index, class_ends)
+        return cls(index, log_w, weight, ends, class_sums(weight, ends))
 
 
 class KeptWeights(list):
@@ -127,6 +122,9 @@ class LibraryClassifier(nn.Module):
         self.ends = torch.bincount(labels, minlength=n_classes).cumsum(0).tolist()
         self.sigma, self.mismatch, self.chunk, self.prune = sigma, mismatch, chunk, prune
         self.noise, self.probe_length = noise, probe_length
+        if prune is not None:  # update_kept's: the whole library at log weight 0, and where the kept episodes go
+            self.everything = np.arange(len(labels), dtype=np.int32), np.zeros(len(labels), np.float32)
+            self.kept_index, self.kept_log_w = np.empty(len(labels), np.int32), np.empty(len(labels), np.float32)
 
     @classmethod
     def build(cls, sim: ProbeSimulator, regions: Regions, grid: CandidateGrid, recipe: LibraryRecipe,
@@ -179,19 +177,19 @@ class LibraryClassifier(nn.Module):
         if self.library.device.type != "cpu":
             raise ValueError(f"LibraryClassifier(prune={self.prune}): a pruned classifier runs on the CPU, its library "
                              f"is on {self.library.device}")
-        library, ends = self.library.numpy(), np.asarray(self.ends)
+        library, ends = self.library.numpy(), np.asarray(self.ends, np.int32)  # the kept index's type: no cast
+        terms = likelihood_terms(self.sigma, self.mismatch, self.noise, self.probe_length)
         left_out = [False] * len(log_w) if ignore is None else ignore.tolist()
         shared: dict[tuple, Kept] = {}
         for b, (state, c, reading, skip) in enumerate(zip(log_w, chosen.tolist(), readings.tolist(), left_out)):
             if skip:
                 continue
             if (key := (state, c, reading)) not in shared:
-                read = library[c] if state is None else library[c].take(state.index)
-                log_p = log_likelihood(torch.tensor([reading]), torch.from_numpy(read), self.sigma, self.mismatch,
-                                       self.noise, self.probe_length).numpy()
-                if state is not None:
-                    log_p += state.log_w  # the same sum as the exact classifier's log_w += log_p
-                shared[key] = Kept.keep(None if state is None else state.index, log_p, self.prune, ends)
+                # the exact classifier's log_w += log_likelihood(...) over the kept episodes, then the pruning
+                index, kept_log_w = self.everything if state is None else (state.index, state.log_w)
+                kept, best = likelihood_update(library[c], index, kept_log_w, reading, *terms, self.prune,
+                                               self.kept_index, self.kept_log_w)
+                shared[key] = Kept.weigh(self.kept_index[:kept].copy(), self.kept_log_w[:kept].copy(), best, ends)
             log_w[b] = shared[key]
         return log_w
 
@@ -227,7 +225,7 @@ class LibraryClassifier(nn.Module):
         if isinstance(log_w, KeptWeights):
             sizes = np.diff(self.ends, prepend=0).astype(np.float64)  # before any probe: the classes' library shares
             with np.errstate(divide="ignore"):  # a class none of whose library episodes is kept: log 0
-                mass = np.log(np.stack([sizes if state is None else state.class_mass() for state in log_w]))
+                mass = np.log(np.stack([sizes if state is None else state.class_mass for state in log_w]))
             return torch.log_softmax(torch.from_numpy(mass).float(), 1).to(self.library.device)
         starts = [0] + self.ends[:-1]
         return torch.log_softmax(torch.stack([torch.logsumexp(log_w[:, a:b], 1) for a, b in zip(starts, self.ends)],

@@ -6,7 +6,7 @@ entropy over the class, expected over the weighted library (readings binned by `
 classifier names the class. `evaluate` scores it on given episodes beside probes placed by no one (the straight
 centre-out scan of the candidate places, unprobed candidates at random) named by the same classifier; under sensor
 faults the planner weighs with the sensor's model and may probe a candidate again. By default it weighs a pruned
-classifier's kept library episodes and ranks its candidates on a sample of them (GreedyPlanner): 7.5x as many
+classifier's kept library episodes and ranks its candidates on a sample of them (GreedyPlanner): 14x as many
 decisions per second as weighing the whole library (`exact`, the reference), at its accuracy (docs/benchmarks.md).
 """
 from __future__ import annotations
@@ -20,6 +20,7 @@ import scipy.sparse
 import torch
 
 from hg.planner.classifier import Choose, Kept, KeptWeights, LibraryClassifier
+from hg.planner.kernels import candidate_mass, sampled_mass
 from hg.planner.library import MISS, CandidateGrid, LibraryRecipe, readings
 from hg.sim.objects import ObjectSet
 from hg.sim.heldout import Regions
@@ -94,7 +95,6 @@ class GreedyPlanner:
         if bin <= 0 or samples < 1 or refine < 1:
             raise ValueError(f"GreedyPlanner: bin={bin} must be > 0, samples={samples} and refine={refine} >= 1")
         self.noise, self.samples, self.refine = classifier.noise, samples, refine
-        self.ticks = np.arange(samples) + 0.5  # where the samples fall, in steps of 1/samples of a class's weight
         self.n_bins, self.n_classes = int(np.ceil(classifier.probe_length / bin)) + 2, classifier.n_classes
         bins = reading_bins(classifier.library.T.cpu().numpy(), bin, self.n_bins)  # (L, C), the classifier's order
         labels = classifier.labels.cpu().numpy()
@@ -106,12 +106,11 @@ class GreedyPlanner:
         self.repeats = bool(self.noise.miss_prob or self.noise.false_contact_prob)  # else a probe reads the same
         if classifier.prune is not None:
             # each library episode's (binned reading, class) cell per candidate, (L, C) for the samples (offset by the
-            # candidate's first cell) and (C, L) for one candidate over every kept episode (int64, np.bincount's own
-            # type: casting int32 at every call took 6% of the planning time)
+            # candidate's first cell) and (C, L) for one candidate over every kept episode (hg.planner.kernels)
             codes = (bins * self.n_classes + labels[:, None]).astype(np.int32)
             size = self.n_bins * self.n_classes  # cells per candidate
             self.codes = np.ascontiguousarray(codes + np.arange(codes.shape[1], dtype=np.int32) * size)
-            self.columns = np.ascontiguousarray(codes.T.astype(np.int64))
+            self.columns = np.ascontiguousarray(codes.T)
             self.first = self.entropy(torch.zeros(1, len(codes)), torch.zeros(1, codes.shape[1], dtype=torch.bool))[0]
             self.cells = None  # the whole library is weighed only before the first probe
 
@@ -146,35 +145,19 @@ class GreedyPlanner:
         """(C,) the entropy each candidate would leave over `samples` of each class's kept episodes drawn by weight
         (systematic: at every 1/samples of the class's weight, so an episode drawn m times weighs m/samples of it), or
         over all of a class's where it keeps fewer; and whether any class was sampled."""
-        index, weight, start = [], [], 0
-        for end in state.ends.tolist():
-            if end - start > self.samples:
-                base = state.cumulative[start - 1] if start else 0.0
-                step = (state.cumulative[end - 1] - base) / self.samples
-                at = np.searchsorted(state.cumulative[start:end], base + self.ticks * step,
-                                     side="right").clip(max=end - start - 1)
-                first = np.flatnonzero(np.diff(at, prepend=-1))  # each episode drawn once, with its count
-                index.append(state.index.take(start + at.take(first)))
-                weight.append(np.diff(first, append=self.samples) * step)
-            else:
-                index.append(state.index[start:end])
-                weight.append(state.weight[start:end])
-            start = end
-        index, weight = np.concatenate(index), np.concatenate(weight)
-        mass = np.bincount(self.codes.take(index, 0).ravel(), np.repeat(weight, self.codes.shape[1]),
-                           minlength=self.codes.shape[1] * self.n_bins * self.n_classes)
-        return self.left(mass, state), len(index) < len(state.index)
+        mass, drawn = sampled_mass(self.codes, state.index, state.weight, state.ends, state.class_mass, self.samples,
+                                   self.codes.shape[1] * self.n_bins * self.n_classes)
+        return self.left(mass, state), drawn
 
     def kept_entropy(self, state: Kept, candidates: list[int]) -> torch.Tensor:
         """(len(candidates),) the entropy each of `candidates` would leave over every kept library episode."""
-        size = self.n_bins * self.n_classes
-        return self.left(np.concatenate([np.bincount(self.columns[c].take(state.index), state.weight, minlength=size)
-                                         for c in candidates]), state)
+        return self.left(candidate_mass(self.columns, np.asarray(candidates, np.int64), state.index, state.weight,
+                                        self.n_bins * self.n_classes), state)
 
     def left(self, mass: np.ndarray, state: Kept) -> torch.Tensor:
         """entropy_left of one episode's cell masses, flat (candidates * bins * classes,)."""
         mass = torch.from_numpy(mass).reshape(1, -1, self.n_bins, self.n_classes)
-        return entropy_left(mass, float(state.cumulative[-1]), self.noise)[0]
+        return entropy_left(mass, float(state.class_mass.sum()), self.noise)[0]
 
 
 def fixed_choice(sequence: np.ndarray) -> Choose:
@@ -268,7 +251,7 @@ def evaluate(objects: str | Path | ObjectSet, labels: np.ndarray, poses: np.ndar
     one), through a sensor with faults `noise` (contact faults only: each probe's fault uniforms are drawn with
     seed + 2, so that a teacher file can replay them). The classifier keeps per episode the library episodes within
     PRUNE of its best and the planner ranks on samples of them (GreedyPlanner), and every prober's probes are named
-    by it; `exact` weighs the whole library (the reference, 7.5x slower)."""
+    by it; `exact` weighs the whole library (the reference, 14x slower)."""
     if unknown := sorted(set(probers) - set(PROBERS)):
         raise ValueError(f"evaluate: probers {unknown}, expected some of {PROBERS}")
     candidates = grid.requests()
