@@ -90,11 +90,11 @@ class Row:
 
 
 TOUCH_SETS, LONG, STABLE_RL = "configs/parts/touch_sets.yaml", "configs/parts/long.yaml", "configs/parts/stable_rl.yaml"
-LIBRARY = "configs/parts/library_classifier.yaml"  # planner_copy's library classifier: data/planner/train65k_s10.npz
+LIBRARY = "configs/parts/library_classifier.yaml"  # planner_copy's library classifier: its first teacher file's library
 PLANNER_COPY = ("configs/planner_copy.yaml", STABLE_RL, TOUCH_SETS, LONG)
 # the greedy planner's library: 65536 training episodes, with their moves along the line and mirror images
 PLANNER_LIBRARY = ("--library-split", "train", "--library", "65536", "--shifts", "5", "--mirror")
-# the library of planner_copy's library classifier (the recipe of data/planner/train65k_s10.npz), without the planner
+# the library of planner_copy's library classifier (the recipe of its first teacher file), without the planner
 CLASSIFIER_LIBRARY = (*PLANNER_LIBRARY, "--library-seed", "10", "--no-planner")
 COPY_65K = "pcrn_fc_candidates_readings_only_imitate_planner65k_final_mirror"  # its hg4 row
 ROWS = {
@@ -135,6 +135,42 @@ PAPER = {
     "PCRN-N-class": {2: 0.205, 3: 0.112, 4: 0.222, 5: 0.286, 6: 0.345, 7: 0.429, 8: 0.506, 9: 0.695, 10: 0.843},
     "PCRN-FC": {2: 0.416, 3: 0.505, 4: 0.576, 5: 0.615, 6: 0.649, 7: 0.670, 8: 0.687, 9: 0.710, 10: 0.796},
 }
+
+
+def teacher_files(objects: str) -> list[str]:
+    """The planner copy's teacher files for an object set, planned on the new protocol as
+    data/planner/across_line/README.md says (hg4's are the ones its configs name)."""
+    name = "hg4" if objects == "hg4" else Path(objects).name
+    return [f"data/planner/across_line/{name}_train65k_s{s}.npz" for s in (10, 20)]
+
+
+def on_set(spec: Row, objects: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """A row's plan arguments and CLI overrides on an object set: on another set than hg4, that set and its own
+    teacher files (refused when missing, with the command that writes them), and no mirror images in a planner's
+    library when the set has chiral objects (hg.sim.symmetry)."""
+    if objects == "hg4":
+        return spec.plan, spec.overrides
+    from hg.sim import load_object_set
+    from hg.sim.symmetry import object_symmetries
+
+    plan = spec.plan
+    if "--mirror" in plan and not all(s.mirror for s in object_symmetries(load_object_set(objects))):
+        plan = tuple(a for a in plan if a != "--mirror")
+    overrides = (*spec.overrides, "--data.objects", objects)
+    composition = " ".join(spec.configs)
+    if "planner_copy.yaml" in composition or LIBRARY in spec.configs:
+        teachers = teacher_files(objects)
+        for path, seed in zip(teachers, (10, 20)):
+            if not (ROOT / path).is_file():
+                raise FileNotFoundError(
+                    f"{path}: no teacher file for {objects}; write it with scripts/plan.py --objects {objects} "
+                    f"--library 65536 --shifts 5 [--mirror] --split train --episodes 3072 --seed {seed} "
+                    f"--save-rollouts {path}")
+        if "planner_copy.yaml" in composition:
+            overrides += ("--model.warmup.init_args.teachers", json.dumps(teachers))
+        if LIBRARY in spec.configs:
+            overrides += ("--model.library_classifier.teacher", teachers[0])
+    return plan, overrides
 
 
 def run_name(row: str, seed: int) -> str:
@@ -184,8 +220,9 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out: Path, jobs: int, te
 
     spec = ROWS[row]
     code_commit = commit()  # the code this run trains with, read before it starts
-    if spec.plan:
-        facts = plan_and_test(spec.plan, seed, test_episodes, spec.probes, objects)
+    plan, overrides = on_set(spec, objects)
+    if plan:
+        facts = plan_and_test(plan, seed, test_episodes, spec.probes, objects)
     else:
         checkpoint = None
         if spec.scores:
@@ -197,11 +234,9 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out: Path, jobs: int, te
             check_definition(source, scored)
             checkpoint = ROOT / scored["best_checkpoint"]
         composition = [*spec.configs, *add_configs]
-        on_set = ("--data.objects", objects) if objects != "hg4" else ()
         trained = fit_and_test([ROOT / c for c in composition], seed,
                                run_folder(runs_dir, row, seed, objects), eval_seed=EVAL_SEED,
-                               test_episodes=test_episodes, extra_args=(*spec.overrides, *on_set),
-                               checkpoint=checkpoint)
+                               test_episodes=test_episodes, extra_args=overrides, checkpoint=checkpoint)
         verb = "fit" if checkpoint is None else f"test --ckpt_path {trained['best_checkpoint']}"
         columns, suffix = trained.pop("columns"), COLUMN[spec.prediction]
         if f"stochastic{suffix}" not in columns:

@@ -18,6 +18,7 @@ from hg.lightning.data import episode_batch
 GOLDEN = Path(__file__).parent / "golden"
 RECORDED = json.loads((GOLDEN / "golden.json").read_text())
 SEED = 1234  # the rollout seed record.py used
+OLD_TEACHERS = [f"data/planner/train65k_s{s}.npz" for s in (10, 20)]  # the planner copy's, in the hg4 research
 COMPOSITIONS = {  # the compositions of the rows the golden configs trained, as the reproduce script runs them
     "paper": ["pcrn_fc.yaml"],
     "fixed_scan": ["side_scan.yaml", "parts/touch_sets.yaml", "parts/long.yaml"],
@@ -51,8 +52,9 @@ def tiny_model(name: str, tmp_path: Path):
         "--config", str(tiny), "--data.regions", "cells", "--data.mode", "ideal", "--data.n_probes", "4",
         "--data.batch_size", "8",
         "--data.eval_batch_size", "8", "--trainer.logger", "false", "--seed_everything", "0"]
-    if "library" in name or name == "planner_copy":
-        args += ["--model.library_classifier.episodes", "64"]
+    if "library" in name or name == "planner_copy":  # the teachers planned in cells, as when it was recorded
+        args += ["--model.library_classifier.episodes", "64", "--model.library_classifier.teacher", OLD_TEACHERS[0],
+                 "--model.warmup.init_args.teachers", json.dumps(OLD_TEACHERS)]
     run = cli(args, run=False)
     model, data = run.model, run.datamodule
     missing, unexpected = model.load_state_dict(renamed(torch.load(GOLDEN / f"{name}.pt")), strict=False)

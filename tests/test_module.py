@@ -25,7 +25,7 @@ from hg.sim import ProbeSimulator, Scene
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
-TEACHERS = [str(ROOT / "data" / "planner" / f"train65k_s{s}.npz") for s in (10, 20)]
+TEACHERS = [str(ROOT / "data" / "planner" / "across_line" / f"hg4_train65k_s{s}.npz") for s in (10, 20)]
 QUIET = ["--trainer.logger", "false", "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary",
          "false"]
 
