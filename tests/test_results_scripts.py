@@ -86,6 +86,27 @@ def test_rows_are_compositions_that_predict_and_probe_as_they_say():
         assert ("--mirror" in plan) == meta["mirror"] and f"--{table1.ROWS[name].probes}" in plan
 
 
+def test_on_another_object_set_the_rows_take_its_own_teachers_and_no_mirror_for_chiral_objects(tmp_path, monkeypatch):
+    """pyb10 has chiral objects: its planner rows plan without the library's mirror images, and the planner copy's
+    rows read pyb10's teacher files; a set without teacher files is refused with the command that writes them."""
+    table1 = script("reproduce_table1")
+    pyb10 = "data/objects/pyb10"
+    plan, overrides = table1.on_set(table1.ROWS["planner65k"], pyb10)
+    assert "--mirror" in table1.ROWS["planner65k"].plan and "--mirror" not in plan
+    assert table1.on_set(table1.ROWS["planner65k"], "hg4")[0] == table1.ROWS["planner65k"].plan
+    teachers = [f"data/planner/across_line/pyb10_train65k_s{s}.npz" for s in (10, 20)]
+    plan, overrides = table1.on_set(table1.ROWS["planner_copy_library"], pyb10)
+    assert plan == () and overrides[:2] == ("--data.objects", pyb10)
+    assert json.loads(overrides[overrides.index("--model.warmup.init_args.teachers") + 1]) == teachers
+    assert overrides[overrides.index("--model.library_classifier.teacher") + 1] == teachers[0]
+    # a copy of pyb10 under another name has no teacher files
+    shutil.copytree(ROOT / pyb10, tmp_path / "my_objects")
+    with pytest.raises(FileNotFoundError, match=r"my_objects_train65k_s10.npz: no teacher file .*--save-rollouts"):
+        table1.on_set(table1.ROWS["planner_copy"], str(tmp_path / "my_objects"))
+    assert table1.on_set(table1.ROWS["line_scan"], str(tmp_path / "my_objects"))[1] == (
+        "--data.objects", str(tmp_path / "my_objects"))
+
+
 def test_changed_hyperparameters_compares_injected_parts_field_by_field():
     from hg.lightning.experiment import changed_hyperparameters
 
