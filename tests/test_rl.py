@@ -102,11 +102,24 @@ def test_log_gain_rewards_add_up_to_the_final_log_probability():
                    prepend=torch.full((6, 1), math.log(1 / 4))), 1.0).pow(2).mean())
 
 
+def test_touch_rewards_are_the_contact_flags_whatever_the_classifier_says():
+    """The diagnostic reward: r_k = T_k, so the returns count the touches to come and the prediction plays no part."""
+    logits, labels, log_pi, baseline = loss_inputs()
+    touched = torch.rand(log_pi.shape, generator=torch.Generator().manual_seed(0)) < 0.4
+    terms = HybridLoss(gamma=0.5, reward="touch")(logits, labels, log_pi, baseline, touched=touched)
+    assert terms["reward"] == touched.float().mean()
+    torch.testing.assert_close(terms["loss_baseline"], F.mse_loss(baseline, discounted_returns(touched.float(), 0.5)))
+    flipped = HybridLoss(gamma=0.5, reward="touch")(-logits, labels, log_pi, baseline, touched=touched)
+    torch.testing.assert_close(flipped["loss_policy"], terms["loss_policy"])
+    with pytest.raises(ValueError, match="needs the probes' contact flags"):
+        HybridLoss(reward="touch")(logits, labels, log_pi, baseline)
+
+
 def test_loss_settings_are_checked():
     with pytest.raises(ValueError, match="loss.gamma=1.5"):
         HybridLoss(gamma=1.5)
-    with pytest.raises(ValueError, match="loss.reward='touch'"):
-        HybridLoss(reward="touch")
+    with pytest.raises(ValueError, match="loss.reward='contact'"):
+        HybridLoss(reward="contact")
     with pytest.raises(ValueError, match="loss.advantage='q'"):
         HybridLoss(advantage="q")
 

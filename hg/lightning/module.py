@@ -118,7 +118,8 @@ class HapticGlance(pl.LightningModule):
         if regime != "classify" and isinstance(self.policy, LearnedPolicy):
             evaluated = self.policy.evaluate(rep, rollout.actions, rollout.points)
         if regime == "reinforce" and evaluated is not None:
-            terms = self.loss(logits, labels, evaluated.log_pi, evaluated.baseline, float(self.policy.std_scale))
+            terms = self.loss(logits, labels, evaluated.log_pi, evaluated.baseline, float(self.policy.std_scale),
+                              touched=rollout.points[..., 3])
         else:
             terms = self.loss(logits, labels)
         if evaluated is not None:

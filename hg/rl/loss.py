@@ -9,7 +9,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-Reward = Literal["correct", "log_gain"]
+Reward = Literal["correct", "log_gain", "touch"]
+REWARDS = ("correct", "log_gain", "touch")
 
 
 def discounted_returns(rewards: Tensor, gamma: float) -> Tensor:
@@ -24,13 +25,19 @@ def discounted_returns(rewards: Tensor, gamma: float) -> Tensor:
     return returns
 
 
-def rewards_of(logits: Tensor, labels: Tensor, reward: Reward) -> Tensor:
+def rewards_of(logits: Tensor, labels: Tensor, reward: Reward, touched: Tensor | None = None) -> Tensor:
     """r_k (B, N) of the prediction after each probe: 1 when it is right (the paper), or beyond the paper
-    "log_gain", what probe k added to log p(true class) (they sum to log p_N - log(1/C))."""
+    "log_gain", what probe k added to log p(true class) (they sum to log p_N - log(1/C)), or "touch", 1 when probe k
+    touched (touched (B, N)): a diagnostic, the simplest thing a policy can learn, which says whether the policy
+    gradient learns at all when the classifier's verdict is left out of the reward."""
     if reward == "correct":
         return (logits.argmax(-1) == labels[:, None]).float()
+    if reward == "touch":
+        if touched is None:
+            raise ValueError("reward='touch' needs the probes' contact flags (touched)")
+        return touched.float()
     if reward != "log_gain":
-        raise ValueError(f"reward={reward!r}: expected 'correct' or 'log_gain'")
+        raise ValueError(f"reward={reward!r}: expected one of {REWARDS}")
     n_probes = logits.shape[1]
     log_p = logits.detach().log_softmax(-1).gather(-1, labels[:, None, None].expand(-1, n_probes, 1)).squeeze(-1)
     return torch.diff(log_p, dim=1, prepend=torch.full_like(log_p[:, :1], -math.log(logits.shape[-1])))
@@ -51,8 +58,8 @@ class HybridLoss:
     def __post_init__(self) -> None:
         if not 0.0 <= self.gamma <= 1.0:
             raise ValueError(f"loss.gamma={self.gamma}: the discount must be in [0, 1]")
-        if self.reward not in ("correct", "log_gain"):
-            raise ValueError(f"loss.reward={self.reward!r}: expected 'correct' or 'log_gain'")
+        if self.reward not in REWARDS:
+            raise ValueError(f"loss.reward={self.reward!r}: expected one of {REWARDS}")
         if self.advantage not in ("return", "reward"):
             raise ValueError(f"loss.advantage={self.advantage!r}: expected 'return' or 'reward'")
 
@@ -61,14 +68,15 @@ class HybridLoss:
         return self.beta * policy_scale
 
     def __call__(self, logits: Tensor, labels: Tensor, log_pi: Tensor | None = None, baseline: Tensor | None = None,
-                 policy_scale: float = 1.0) -> dict[str, Tensor]:
+                 policy_scale: float = 1.0, touched: Tensor | None = None) -> dict[str, Tensor]:
         """logits (B, N, C), the prediction after each probe; log_pi (B, N) log pi(a_k | s_k) of the detached
-        requests; baseline (B, N) b_k from detached states. Without a policy to train (a fixed scan, or a teacher's
-        probes) only the cross-entropy remains. policy_scale multiplies beta: the gradient of log N grows as 1 / std,
-        so a shrinking std must not let the policy term crowd the others out of the clipped gradient."""
+        requests; baseline (B, N) b_k from detached states; touched (B, N) the probes' contact flags (the "touch"
+        reward reads them). Without a policy to train (a fixed scan, or a teacher's probes) only the cross-entropy
+        remains. policy_scale multiplies beta: the gradient of log N grows as 1 / std, so a shrinking std must not let
+        the policy term crowd the others out of the clipped gradient."""
         n_probes = logits.shape[1]
         correct = (logits.argmax(-1) == labels[:, None]).float()
-        rewards = rewards_of(logits, labels, self.reward)  # r_k, no gradient
+        rewards = rewards_of(logits, labels, self.reward, touched)  # r_k, no gradient
         # sum_o y_o log pi_c(o), on the prediction after every probe
         cross_entropy = F.cross_entropy(logits.flatten(0, 1), labels.repeat_interleave(n_probes))
         terms = {"loss_ce": cross_entropy, "reward": rewards.mean(), "acc": correct[:, -1].mean()}
