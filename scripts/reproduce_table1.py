@@ -409,24 +409,30 @@ def cell(entry: dict, key: str, k: int) -> str:
     return f"{mean:.3f}" if len(entry["seeds"]) == 1 else f"{mean:.3f} +- {std:.3f}"
 
 
-def markdown(table: dict[str, dict], merged_at: str, test_episodes: int) -> str:
+def markdown(table: dict[str, dict], merged_at: str, test_episodes: int, objects: str = "hg4",
+             heldout_m: float | None = None) -> str:
     rows = list(table)
     n = max(len(t["accuracy"]) for t in table.values())
     paper = {r: PAPER[ROWS[r].paper][10] for r in rows if ROWS[r].paper}
     lines = ["# Table 1, reproduced and compared",
              "",
-             f"Accuracy after each probe on the same {test_episodes} held-out test episodes (pose regions never used in "
-             "training), single stochastic rollout, mean +- std over training seeds; each learned model is the "
+             f"Objects: {objects}. Accuracy after each probe on the same {test_episodes} held-out test episodes of "
+             "the new protocol (`--data.regions across_line`, docs/benchmark.md: a band across the probe line that no "
+             "training pose, library or teacher episode reaches under any symmetry or augmentation"
+             + (f"; every test pose at least {heldout_m} m from a training pose" if heldout_m is not None else "")
+             + "), single stochastic rollout, mean +- std over training seeds; each learned model is the "
              "checkpoint best on the validation episodes (a third, separate pose region). Each row says what predicts "
              "the class (`learned` heads, the `library` classifier, or both summed: `mixed`) and what chooses the "
              "probes (a `learned` policy, a `fixed` scan, `random` probes, the greedy `planner`). The paper's figures "
              "(Riou et al., ICASSP 2021, Table 1) come from the authors' own simulator: a yardstick, not the same "
              "experiment.",
              "",
-             "Produced by `.venv/bin/python scripts/reproduce_table1.py --merge-only` (paper protocol: 8000 steps, "
-             "batch 64, 10 probes, arm mode, hg4; each row's composition is named below). Merged at commit "
+             "Produced by `.venv/bin/python scripts/reproduce_table1.py --merge-only"
+             + ("" if objects == "hg4" else f" --objects {objects}") + "` (paper protocol: 8000 steps, batch 64, "
+             "10 probes, arm mode; each row's composition is named below). Merged at commit "
              f"`{merged_at}`; each row's runs were made at the commits listed with it. `test reads`: how many times "
-             "the row's runs read the test split (each run once). The rows of the hg4 research are in "
+             "the row's runs read the test split (each run once). The hg4 research's table, on the old regions, is "
+             "archived with its caveats in `docs/archive/table1_hg4_research.md`; its rows are in "
              "`docs/ablations.md`.",
              "",
              "| row | predicts | probes | seeds | " + " | ".join(f"after {k}" for k in SHOWN) +
@@ -501,12 +507,12 @@ def merge(out: Path, write: bool = True, objects: str = "hg4") -> dict:
         from hg.lightning.callbacks import accuracy_plot
 
         first, name = next(iter(runs.values()))[0], f"table1{set_suffix(objects)}"
+        heldout_m = heldout_min_distance_m(objects, first["test_episodes"])
         write_atomic(out / f"{name}.json", json.dumps({
-            "objects": objects, "commit": merged_at,
-            "heldout_min_distance_m": heldout_min_distance_m(objects, first["test_episodes"]),
+            "objects": objects, "commit": merged_at, "heldout_min_distance_m": heldout_m,
             "test_episodes": first["test_episodes"], "test_fingerprint": first["test_fingerprint"],
             "best_variant": best_variant(table), "rows": table, "paper": PAPER}, indent=1) + "\n")
-        write_atomic(out / f"{name}.md", markdown(table, merged_at, first["test_episodes"]))
+        write_atomic(out / f"{name}.md", markdown(table, merged_at, first["test_episodes"], objects, heldout_m))
         write_atomic(out / f"{name}.png", accuracy_plot(
             {f"{t['label']} (n={len(t['seeds'])})": t["accuracy"] for t in table.values()},
             reference={f"paper {c}": col for c, col in PAPER.items()}))
@@ -570,8 +576,8 @@ def ablations(out: Path) -> str:
     lines += ["", "## The hg4 rows that Table 1's rows replace", "",
               "Run again under their new names by `scripts/reproduce_table1.py --rows <row>` at the current commit; "
               "`tests/test_golden.py` checks that four of the compositions give the numbers their old configs gave. "
-              "Their recorded figures (old protocol, as above) are those of `docs/results/table1.md` until it is "
-              "merged from the new runs.", "",
+              "Their recorded figures (old protocol, as above) are those of the archived table, "
+              "`docs/archive/table1_hg4_research.md`.", "",
               "| old row | predicts | seeds | after 2 | after 5 | after 10 | row now | composition or command now |",
               "|---|---|---|---:|---:|---:|---|---|"]
     for old in sorted(r for r in runs if r in replaced):
