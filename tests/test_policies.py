@@ -133,17 +133,18 @@ def test_side_picking_scan_on_real_ray_casts(sim, batch):
     torch.testing.assert_close(out.requests, scan.requests(out.points))
 
 
-@pytest.mark.parametrize("make_encoder, prior", [(lambda: PCRN(width=16, out_dim=32), None),
-                                                 (lambda: PCRN(width=16, out_dim=32), side_scan),
-                                                 (lambda: LSTMEncoder(hidden=32), None),
-                                                 (lambda: LSTMEncoder(hidden=32), side_scan)],
-                         ids=["pcrn", "pcrn on side scan", "lstm", "lstm on side scan"])
-def test_gaussian_log_prob_is_taken_under_the_policy_that_acted(sim, batch, make_encoder, prior):
+@pytest.mark.parametrize("make_encoder, prior, reads_count", [(lambda: PCRN(width=16, out_dim=32), None, False),
+                                                              (lambda: PCRN(width=16, out_dim=32), side_scan, False),
+                                                              (lambda: PCRN(width=16, out_dim=32), None, True),
+                                                              (lambda: LSTMEncoder(hidden=32), None, False),
+                                                              (lambda: LSTMEncoder(hidden=32), side_scan, False)],
+                         ids=["pcrn", "pcrn on side scan", "pcrn reading the count", "lstm", "lstm on side scan"])
+def test_gaussian_log_prob_is_taken_under_the_policy_that_acted(sim, batch, make_encoder, prior, reads_count):
     """The loss reads whole sequences (teacher forcing), the rollout one probe at a time: the mean-action rollout's
     requests must be exactly the means the loss pass computes, and the stochastic rollout's log-probability that
-    of the Gaussian it was drawn from."""
+    of the Gaussian it was drawn from (also when the policy reads the probe count)."""
     torch.manual_seed(0)
-    encoder, policy = make_encoder(), GaussianPolicy(DIMS, hidden=32, prior=prior)
+    encoder, policy = make_encoder(), GaussianPolicy(DIMS, hidden=32, prior=prior, reads_count=reads_count)
     mean = rollout(sim, policy, batch["labels"], batch["poses"], 1, N, 2.0, encoder, deterministic=True)
     evaluated = policy.evaluate(encoder(mean.requests, mean.points), mean.actions, mean.points)
     torch.testing.assert_close(evaluated.mu, mean.actions)
@@ -153,6 +154,11 @@ def test_gaussian_log_prob_is_taken_under_the_policy_that_acted(sim, batch, make
     expected = torch.distributions.Normal(evaluated.mu, evaluated.sigma).log_prob(drawn.actions).sum(-1)
     torch.testing.assert_close(evaluated.log_pi, expected)
     assert set(evaluated.stats) >= {"std_py", "std_ux", "std_uy", "std_uz"}
+    if reads_count:  # the count reaches the requests: with the encoder's states held alike, the probes still differ
+        assert policy.location.start.shape == (32 + N,)
+        states = policy.location.states(torch.zeros(1, N, 32), policy.counts(1, N, torch.device("cpu")))
+        assert not torch.allclose(policy.location.distribution(states, torch.zeros(1, N, 4))[0][0, 1:],
+                                  policy.location.distribution(states, torch.zeros(1, N, 4))[0][0, :1].expand(N - 1, 4))
 
 
 def test_gaussian_on_a_scan_starts_on_the_scans_requests(sim, batch):

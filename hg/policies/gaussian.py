@@ -25,14 +25,24 @@ class GaussianPolicy(LearnedPolicy):
 
     def __init__(self, dims: Dims, hidden: int = 128, std_floor: float = 0.05, std_max: float = 1.0,
                  prior: Callable[[Dims], Scan] | None = None, anchor: float = 0.0,
-                 reads_detached: bool = False, truncated: bool = False) -> None:
-        super().__init__(dims.rep, reads_detached)
+                 reads_detached: bool = False, truncated: bool = False, reads_count: bool = False) -> None:
+        """reads_count: the location network (and the baseline) also read how many probes were made, one-hot,
+        beside the mean of PCRN's states, which says what was read but hardly how often: a scan is a schedule by
+        probe count (beyond the paper; docs/findings.md, "Why the paper's rule collapses here")."""
+        self.n_probes = dims.n_probes if reads_count else 0
+        super().__init__(dims.rep + self.n_probes, reads_detached)
         self.prior = prior(dims) if prior is not None else None
         if anchor < 0.0 or (anchor and self.prior is None):
             raise ValueError(f"GaussianPolicy: anchor={anchor}: must be >= 0, and needs a prior scan to hold to")
         self.anchor = anchor
-        self.location = LocationNetwork(dims.rep, hidden=hidden, std_floor=std_floor, std_max=std_max,
-                                        zero_mean=self.prior is not None, truncated=truncated)
+        self.location = LocationNetwork(dims.rep + self.n_probes, hidden=hidden, std_floor=std_floor,
+                                        std_max=std_max, zero_mean=self.prior is not None, truncated=truncated)
+
+    def counts(self, batch: int, probes: int, device: torch.device) -> Tensor | None:
+        """(batch, probes, n_probes) one-hot of 1..probes, the count after each probe (None without reads_count)."""
+        if not self.n_probes:
+            return None
+        return torch.eye(self.n_probes, device=device)[:probes].expand(batch, -1, -1)
 
     def offsets(self, points: Tensor) -> Tensor | None:
         """(B, N, 4) the prior scan's requests before the tanh (only requests beyond +-0.9, the ends of a full-span
@@ -42,13 +52,15 @@ class GaussianPolicy(LearnedPolicy):
         return torch.atanh(self.prior.requests(points).clamp(-0.9, 0.9))
 
     def act(self, obs: Observation, deterministic: bool | Tensor, generator: torch.Generator) -> Tensor:
-        state = self.location.state(obs.rep_sum, obs.k, batch_size=len(obs.points))
+        counts = self.counts(len(obs.points), obs.k, obs.points.device) if obs.k else None
+        state = self.location.state(obs.rep_sum, obs.k, batch_size=len(obs.points),
+                                    extra=None if counts is None else counts[:, -1])
         offsets = self.offsets(obs.points)
         offset = None if offsets is None else offsets[:, obs.k].to(state.device)
         return self.location.sample(state, deterministic=deterministic, generator=generator, offset=offset)[0]
 
     def evaluate(self, rep: Tensor, actions: Tensor, points: Tensor) -> PolicyEval:
-        states = self.location.states(self.policy_rep(rep))
+        states = self.location.states(self.policy_rep(rep), self.counts(*rep.shape[:2], rep.device))
         offsets = self.offsets(points)
         log_pi, mu, sigma = self.location.log_prob_and_moments(states, actions, offsets)
         evaluated = PolicyEval(log_pi, self.baseline(states.detach()), mu, sigma, stats=self.std_stats(sigma))
