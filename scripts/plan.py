@@ -12,7 +12,7 @@ model and may probe a candidate again), and `--table-episodes` scores the very e
 The library holds training poses (`--library-split train`, the default); `--library-split val` lets it see the
 held-out positions it is scored on: a ceiling of what adaptive probes can say, never a result. By default the
 classifier keeps per episode only the library episodes within exp(-20) of its best and the planner ranks candidates on
-samples of them (hg.planner.GreedyPlanner; 14x as fast at the same accuracy: docs/benchmarks.md); `--exact` weighs
+samples of them (hg.planner.GreedyPlanner; over ten times as fast at the same accuracy: docs/benchmarks.md); `--exact` weighs
 the whole library, as every planner reading made before it did.
 
 `--save-rollouts FILE` writes the planner's episodes as a teacher file for a policy to copy (hg.planner.save_teacher:
@@ -98,8 +98,8 @@ def main() -> None:
                         help="sensor fault rate of the scored episodes' probes: SensorNoise(miss_prob = "
                              "false_contact_prob = rate); the planner weighs with the sensor's model and may re-probe")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--exact", action="store_true", help="weigh the whole library (the reference planner, 14x "
-                        "slower) instead of each episode's kept library episodes")
+    parser.add_argument("--exact", action="store_true", help="weigh the whole library (the reference planner, over ten "
+                        "times slower) instead of each episode's kept library episodes")
     parser.add_argument("--save-rollouts", type=Path, help="write the planner's episodes here (.npz): a teacher")
     args = parser.parse_args()
     for name in ("episodes", "library", "n_probes", "places"):

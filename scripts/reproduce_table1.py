@@ -137,39 +137,38 @@ PAPER = {
 }
 
 
-def teacher_files(objects: str) -> list[str]:
-    """The planner copy's teacher files for an object set, planned on the new protocol as
+def teacher_files(objects: str) -> list[tuple[int, str]]:
+    """The planner copy's teacher files for an object set, by seed, planned on the new protocol as
     data/planner/across_line/README.md says (hg4's are the ones its configs name)."""
-    name = "hg4" if objects == "hg4" else Path(objects).name
-    return [f"data/planner/across_line/{name}_train65k_s{s}.npz" for s in (10, 20)]
+    return [(seed, f"data/planner/across_line/{set_name(objects)}_train65k_s{seed}.npz") for seed in (10, 20)]
 
 
-def on_set(spec: Row, objects: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
-    """A row's plan arguments and CLI overrides on an object set: on another set than hg4, that set and its own
-    teacher files (refused when missing, with the command that writes them), and no mirror images in a planner's
-    library when the set has chiral objects (hg.sim.symmetry)."""
+def on_set(spec: Row, objects: str, composition: list[str]) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """A row's plan arguments and CLI overrides on an object set: on another set than hg4, that set and, for a
+    composition with the planner copy or its library classifier, the set's own teacher files (refused when missing,
+    with the command that writes them); a planner's library without mirror images when the set has chiral objects
+    (hg.sim.symmetry)."""
     if objects == "hg4":
         return spec.plan, spec.overrides
     from hg.sim import load_object_set
     from hg.sim.symmetry import object_symmetries
 
-    plan = spec.plan
-    if "--mirror" in plan and not all(s.mirror for s in object_symmetries(load_object_set(objects))):
-        plan = tuple(a for a in plan if a != "--mirror")
+    mirror = all(s.mirror for s in object_symmetries(load_object_set(objects)))
+    plan = spec.plan if mirror else tuple(a for a in spec.plan if a != "--mirror")
     overrides = (*spec.overrides, "--data.objects", objects)
-    composition = " ".join(spec.configs)
-    if "planner_copy.yaml" in composition or LIBRARY in spec.configs:
+    copies, names = PLANNER_COPY[0] in composition, LIBRARY in composition
+    if copies or names:
         teachers = teacher_files(objects)
-        for path, seed in zip(teachers, (10, 20)):
+        library = PLANNER_LIBRARY if mirror else tuple(a for a in PLANNER_LIBRARY if a != "--mirror")
+        for seed, path in teachers:
             if not (ROOT / path).is_file():
                 raise FileNotFoundError(
                     f"{path}: no teacher file for {objects}; write it with scripts/plan.py --objects {objects} "
-                    f"--library 65536 --shifts 5 [--mirror] --split train --episodes 3072 --seed {seed} "
-                    f"--save-rollouts {path}")
-        if "planner_copy.yaml" in composition:
-            overrides += ("--model.warmup.init_args.teachers", json.dumps(teachers))
-        if LIBRARY in spec.configs:
-            overrides += ("--model.library_classifier.teacher", teachers[0])
+                    f"{' '.join(library)} --split train --episodes 3072 --seed {seed} --save-rollouts {path}")
+        if copies:
+            overrides += ("--model.warmup.init_args.teachers", json.dumps([path for _, path in teachers]))
+        if names:
+            overrides += ("--model.library_classifier.teacher", teachers[0][1])
     return plan, overrides
 
 
@@ -177,9 +176,14 @@ def run_name(row: str, seed: int) -> str:
     return f"{row}-seed{seed}"
 
 
+def set_name(objects: str) -> str:
+    """hg4, or the folder name of another object set (--objects)."""
+    return "hg4" if objects == "hg4" else Path(objects).name
+
+
 def set_suffix(objects: str) -> str:
     """'' for hg4, the paper's set; '_<folder name>' for another (--objects): its records and table sit beside."""
-    return "" if objects == "hg4" else f"_{Path(objects).name}"
+    return "" if objects == "hg4" else f"_{set_name(objects)}"
 
 
 def records_folder(out: Path, objects: str = "hg4") -> Path:
@@ -220,7 +224,8 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out: Path, jobs: int, te
 
     spec = ROWS[row]
     code_commit = commit()  # the code this run trains with, read before it starts
-    plan, overrides = on_set(spec, objects)
+    composition = [*spec.configs, *add_configs]
+    plan, overrides = on_set(spec, objects, composition)
     if plan:
         facts = plan_and_test(plan, seed, test_episodes, spec.probes, objects)
     else:
@@ -233,7 +238,6 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out: Path, jobs: int, te
             scored = read_record(source)
             check_definition(source, scored)
             checkpoint = ROOT / scored["best_checkpoint"]
-        composition = [*spec.configs, *add_configs]
         trained = fit_and_test([ROOT / c for c in composition], seed,
                                run_folder(runs_dir, row, seed, objects), eval_seed=EVAL_SEED,
                                test_episodes=test_episodes, extra_args=overrides, checkpoint=checkpoint)
@@ -409,8 +413,7 @@ def cell(entry: dict, key: str, k: int) -> str:
     return f"{mean:.3f}" if len(entry["seeds"]) == 1 else f"{mean:.3f} +- {std:.3f}"
 
 
-def markdown(table: dict[str, dict], merged_at: str, test_episodes: int, objects: str = "hg4",
-             heldout_m: float | None = None) -> str:
+def markdown(table: dict[str, dict], merged_at: str, test_episodes: int, objects: str, heldout_m: float) -> str:
     rows = list(table)
     n = max(len(t["accuracy"]) for t in table.values())
     paper = {r: PAPER[ROWS[r].paper][10] for r in rows if ROWS[r].paper}
@@ -418,8 +421,9 @@ def markdown(table: dict[str, dict], merged_at: str, test_episodes: int, objects
              "",
              f"Objects: {objects}. Accuracy after each probe on the same {test_episodes} held-out test episodes of "
              "the new protocol (`--data.regions across_line`, docs/benchmark.md: a band across the probe line that no "
-             "training pose, library or teacher episode reaches under any symmetry or augmentation"
-             + (f"; every test pose at least {heldout_m} m from a training pose" if heldout_m is not None else "")
+             "training pose, library or teacher episode reaches under any symmetry or augmentation; "
+             + (f"every test pose at least {heldout_m} m from a training pose" if heldout_m > 0 else
+                "**but a test pose of this set lies within reach of a training pose**")
              + "), single stochastic rollout, mean +- std over training seeds; each learned model is the "
              "checkpoint best on the validation episodes (a third, separate pose region). Each row says what predicts "
              "the class (`learned` heads, the `library` classifier, or both summed: `mixed`) and what chooses the "

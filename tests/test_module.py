@@ -209,6 +209,16 @@ def test_schedules_need_an_end(tmp_path):
         cli(args_of(ROWS["pcrn_fc"], "--lr_decay.final_scale", "2"), run=False)
 
 
+def test_the_touch_reward_trains_through_a_warm_up_and_pays_the_contacts(tmp_path):
+    """#57's diagnostic reward: the imitation warm-up (no policy term) and the hybrid rule after it both run, and
+    the logged reward is the share of probes that touched."""
+    fit = cli(["fit", *args_of(ROWS["planner_copy"], "--model.loss.reward", "touch", "--trainer.default_root_dir",
+                               str(tmp_path))])
+    assert fit.trainer.global_step == 4
+    logged = fit.trainer.callback_metrics
+    assert 0.0 <= float(logged["train/reward"]) <= 1.0 and torch.isfinite(logged["train/loss_policy"])
+
+
 @pytest.mark.parametrize("row, args, message", [
     ("pcrn_fc", ["--model.warmup", "hg.rl.FollowPrior", "--model.warmup.init_args.steps", "2"],
      "model.warmup: FollowPrior probes with the policy's prior scan; GaussianPolicy has none"),

@@ -91,19 +91,23 @@ def test_on_another_object_set_the_rows_take_its_own_teachers_and_no_mirror_for_
     rows read pyb10's teacher files; a set without teacher files is refused with the command that writes them."""
     table1 = script("reproduce_table1")
     pyb10 = "data/objects/pyb10"
-    plan, overrides = table1.on_set(table1.ROWS["planner65k"], pyb10)
+    plan, overrides = table1.on_set(table1.ROWS["planner65k"], pyb10, [])
     assert "--mirror" in table1.ROWS["planner65k"].plan and "--mirror" not in plan
-    assert table1.on_set(table1.ROWS["planner65k"], "hg4")[0] == table1.ROWS["planner65k"].plan
+    assert table1.on_set(table1.ROWS["planner65k"], "hg4", [])[0] == table1.ROWS["planner65k"].plan
     teachers = [f"data/planner/across_line/pyb10_train65k_s{s}.npz" for s in (10, 20)]
-    plan, overrides = table1.on_set(table1.ROWS["planner_copy_library"], pyb10)
+    row = table1.ROWS["planner_copy_library"]
+    plan, overrides = table1.on_set(row, pyb10, list(row.configs))
     assert plan == () and overrides[:2] == ("--data.objects", pyb10)
     assert json.loads(overrides[overrides.index("--model.warmup.init_args.teachers") + 1]) == teachers
     assert overrides[overrides.index("--model.library_classifier.teacher") + 1] == teachers[0]
     # a copy of pyb10 under another name has no teacher files
     shutil.copytree(ROOT / pyb10, tmp_path / "my_objects")
-    with pytest.raises(FileNotFoundError, match=r"my_objects_train65k_s10.npz: no teacher file .*--save-rollouts"):
-        table1.on_set(table1.ROWS["planner_copy"], str(tmp_path / "my_objects"))
-    assert table1.on_set(table1.ROWS["line_scan"], str(tmp_path / "my_objects"))[1] == (
+    with pytest.raises(FileNotFoundError, match=r"my_objects_train65k_s10.npz: no teacher file .*--shifts 5 --split"):
+        table1.on_set(table1.ROWS["planner_copy"], str(tmp_path / "my_objects"), list(table1.PLANNER_COPY))
+    # a part added to a row's composition (--add-config) counts too
+    with pytest.raises(FileNotFoundError, match=r"my_objects_train65k_s10.npz"):
+        table1.on_set(table1.ROWS["line_scan"], str(tmp_path / "my_objects"), ["configs/line_scan.yaml", table1.LIBRARY])
+    assert table1.on_set(table1.ROWS["line_scan"], str(tmp_path / "my_objects"), ["configs/line_scan.yaml"])[1] == (
         "--data.objects", str(tmp_path / "my_objects"))
 
 

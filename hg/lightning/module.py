@@ -117,11 +117,12 @@ class HapticGlance(pl.LightningModule):
         evaluated = None
         if regime != "classify" and isinstance(self.policy, LearnedPolicy):
             evaluated = self.policy.evaluate(rep, rollout.actions, rollout.points)
+        touched = rollout.points[..., 3]  # the "touch" reward's, logged at every step
         if regime == "reinforce" and evaluated is not None:
             terms = self.loss(logits, labels, evaluated.log_pi, evaluated.baseline, float(self.policy.std_scale),
-                              touched=rollout.points[..., 3])
+                              touched=touched)
         else:
-            terms = self.loss(logits, labels)
+            terms = self.loss(logits, labels, touched=touched)
         if evaluated is not None:
             extra = dict(evaluated.losses)
             if regime == "imitate":

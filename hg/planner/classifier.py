@@ -123,6 +123,7 @@ class LibraryClassifier(nn.Module):
         self.sigma, self.mismatch, self.chunk, self.prune = sigma, mismatch, chunk, prune
         self.noise, self.probe_length = noise, probe_length
         if prune is not None:  # update_kept's: the whole library at log weight 0, and where the kept episodes go
+            # (scratch shared by every update: one update at a time per classifier)
             self.everything = np.arange(len(labels), dtype=np.int32), np.zeros(len(labels), np.float32)
             self.kept_index, self.kept_log_w = np.empty(len(labels), np.int32), np.empty(len(labels), np.float32)
 

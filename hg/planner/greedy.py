@@ -6,8 +6,8 @@ entropy over the class, expected over the weighted library (readings binned by `
 classifier names the class. `evaluate` scores it on given episodes beside probes placed by no one (the straight
 centre-out scan of the candidate places, unprobed candidates at random) named by the same classifier; under sensor
 faults the planner weighs with the sensor's model and may probe a candidate again. By default it weighs a pruned
-classifier's kept library episodes and ranks its candidates on a sample of them (GreedyPlanner): 14x as many
-decisions per second as weighing the whole library (`exact`, the reference), at its accuracy (docs/benchmarks.md).
+classifier's kept library episodes and ranks its candidates on a sample of them (GreedyPlanner): over ten times as
+many decisions per second as weighing the whole library (`exact`, the reference), at its accuracy (docs/benchmarks.md).
 """
 from __future__ import annotations
 
@@ -86,7 +86,7 @@ class GreedyPlanner:
     reading can outvote a corrupted first one) whose reading would leave the least class entropy, expected over the
     classifier's weighting of its library, with the classifier's sensor model. Over a pruned classifier's kept library
     episodes (LibraryClassifier(prune=...)) it ranks the candidates by the entropy over `samples` of each class's kept
-    episodes drawn by weight (all of them where it keeps fewer) and takes, of the `refine` best-ranked, the one whose
+    episodes drawn by weight (all of them where it keeps no more) and takes, of the `refine` best-ranked, the one whose
     entropy over every kept episode is least (the samples' ranking is close, but near ties are common and need the exact
     figure). The choice before any probe, alike for every episode, is made once, over the whole library."""
 
@@ -144,7 +144,7 @@ class GreedyPlanner:
     def sampled_entropy(self, state: Kept) -> tuple[torch.Tensor, bool]:
         """(C,) the entropy each candidate would leave over `samples` of each class's kept episodes drawn by weight
         (systematic: at every 1/samples of the class's weight, so an episode drawn m times weighs m/samples of it), or
-        over all of a class's where it keeps fewer; and whether any class was sampled."""
+        over all of a class's where it keeps no more; and whether any class was sampled."""
         mass, drawn = sampled_mass(self.codes, state.index, state.weight, state.ends, state.class_mass, self.samples,
                                    self.codes.shape[1] * self.n_bins * self.n_classes)
         return self.left(mass, state), drawn
@@ -251,7 +251,7 @@ def evaluate(objects: str | Path | ObjectSet, labels: np.ndarray, poses: np.ndar
     one), through a sensor with faults `noise` (contact faults only: each probe's fault uniforms are drawn with
     seed + 2, so that a teacher file can replay them). The classifier keeps per episode the library episodes within
     PRUNE of its best and the planner ranks on samples of them (GreedyPlanner), and every prober's probes are named
-    by it; `exact` weighs the whole library (the reference, 14x slower)."""
+    by it; `exact` weighs the whole library (the reference, over ten times slower: docs/benchmarks.md)."""
     if unknown := sorted(set(probers) - set(PROBERS)):
         raise ValueError(f"evaluate: probers {unknown}, expected some of {PROBERS}")
     candidates = grid.requests()

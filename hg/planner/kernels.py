@@ -1,11 +1,7 @@
-"""The pruned planner's passes over kept library episodes, fused into compiled loops (numba).
-
-After its first probes an episode keeps most of the library, and each probe passed over those episodes about twenty
-times in numpy (gather, likelihood, add, max, compare, compact, exp, running sum; gathers and bincounts for the
-candidates' cells), each pass into a fresh array. These loops make one or two passes and write the kept episodes into
-the caller's arrays: a fresh array of a few MB faults its pages in at every call, which cost as much as the
-arithmetic. The log weights are the numpy path's to the bit (the same float32 operations in the same order;
-tests/test_planner.py); docs/benchmarks.md, "Planner", has the speed.
+"""The pruned planner's passes over kept library episodes as compiled loops (numba): an episode keeps most of a
+library of ~10^6 episodes, and numpy made some twenty passes over them per probe, each into a fresh array
+(docs/benchmarks.md, "Planner"). The log weights are the exact classifier's (log_likelihood) to the bit: the same
+float32 operations in the same order (tests/test_planner.py).
 """
 from __future__ import annotations
 
@@ -66,12 +62,12 @@ def class_sums(weight: np.ndarray, ends: np.ndarray) -> np.ndarray:
 
 @numba.njit(cache=True)
 def candidate_mass(columns: np.ndarray, candidates: np.ndarray, index: np.ndarray, weight: np.ndarray,
-                   size: int) -> np.ndarray:
-    """(len(candidates) * size,) float64: for each candidate, the kept episodes' weights summed by their (binned
-    reading, class) cell; columns (C, L) each library episode's cell per candidate."""
-    mass = np.zeros(len(candidates) * size)
+                   cells_per_candidate: int) -> np.ndarray:
+    """(len(candidates) * cells_per_candidate,) float64: for each candidate, the kept episodes' weights summed by
+    their (binned reading, class) cell; columns (C, L) each library episode's cell per candidate."""
+    mass = np.zeros(len(candidates) * cells_per_candidate)
     for k in range(len(candidates)):
-        row, offset = columns[candidates[k]], k * size
+        row, offset = columns[candidates[k]], k * cells_per_candidate
         for i in range(len(index)):
             mass[offset + row[index[i]]] += weight[i]
     return mass
@@ -79,13 +75,13 @@ def candidate_mass(columns: np.ndarray, candidates: np.ndarray, index: np.ndarra
 
 @numba.njit(cache=True)
 def sampled_mass(codes: np.ndarray, index: np.ndarray, weight: np.ndarray, ends: np.ndarray, class_mass: np.ndarray,
-                 samples: int, size: int) -> tuple[np.ndarray, bool]:
-    """(size,) float64 every candidate's cells' weights over `samples` of each class's kept episodes drawn by weight,
-    or all of a class's where it keeps no more: systematic draws, at every 1/samples of the class's weight
+                 samples: int, n_cells: int) -> tuple[np.ndarray, bool]:
+    """(n_cells,) float64 every candidate's cells' weights over `samples` of each class's kept episodes drawn by
+    weight, or all of a class's where it keeps no more than `samples`: systematic draws, at every 1/samples of the class's weight
     (class_mass[c]), each weighing 1/samples of it. codes (L, C) each library episode's cell per candidate, offset by
     the candidate's first cell; index, weight the kept episodes (each class one slice, ending before ends[c]).
     Returns the masses and whether any class was drawn."""
-    mass, start, drawn = np.zeros(size), 0, False
+    mass, start, drawn = np.zeros(n_cells), 0, False
     for c in range(len(ends)):
         end = ends[c]
         if end - start <= samples:

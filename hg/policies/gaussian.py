@@ -29,20 +29,20 @@ class GaussianPolicy(LearnedPolicy):
         """reads_count: the location network (and the baseline) also read how many probes were made, one-hot,
         beside the mean of PCRN's states, which says what was read but hardly how often: a scan is a schedule by
         probe count (beyond the paper; docs/findings.md, "Why the paper's rule collapses here")."""
-        self.n_probes = dims.n_probes if reads_count else 0
-        super().__init__(dims.rep + self.n_probes, reads_detached)
+        self.count_width = dims.n_probes if reads_count else 0  # one-hot of 1..n_probes probes made
+        super().__init__(dims.rep + self.count_width, reads_detached)
         self.prior = prior(dims) if prior is not None else None
         if anchor < 0.0 or (anchor and self.prior is None):
             raise ValueError(f"GaussianPolicy: anchor={anchor}: must be >= 0, and needs a prior scan to hold to")
         self.anchor = anchor
-        self.location = LocationNetwork(dims.rep + self.n_probes, hidden=hidden, std_floor=std_floor,
+        self.location = LocationNetwork(dims.rep + self.count_width, hidden=hidden, std_floor=std_floor,
                                         std_max=std_max, zero_mean=self.prior is not None, truncated=truncated)
 
     def counts(self, batch: int, probes: int, device: torch.device) -> Tensor | None:
         """(batch, probes, n_probes) one-hot of 1..probes, the count after each probe (None without reads_count)."""
-        if not self.n_probes:
+        if not self.count_width:
             return None
-        return torch.eye(self.n_probes, device=device)[:probes].expand(batch, -1, -1)
+        return torch.eye(self.count_width, device=device)[:probes].expand(batch, -1, -1)
 
     def offsets(self, points: Tensor) -> Tensor | None:
         """(B, N, 4) the prior scan's requests before the tanh (only requests beyond +-0.9, the ends of a full-span
@@ -52,9 +52,10 @@ class GaussianPolicy(LearnedPolicy):
         return torch.atanh(self.prior.requests(points).clamp(-0.9, 0.9))
 
     def act(self, obs: Observation, deterministic: bool | Tensor, generator: torch.Generator) -> Tensor:
-        counts = self.counts(len(obs.points), obs.k, obs.points.device) if obs.k else None
-        state = self.location.state(obs.rep_sum, obs.k, batch_size=len(obs.points),
-                                    extra=None if counts is None else counts[:, -1])
+        count = None  # the count after probe k: states()' row k reads it too
+        if self.count_width and obs.k:
+            count = torch.eye(self.count_width, device=obs.points.device)[obs.k - 1].expand(len(obs.points), -1)
+        state = self.location.state(obs.rep_sum, obs.k, batch_size=len(obs.points), extra=count)
         offsets = self.offsets(obs.points)
         offset = None if offsets is None else offsets[:, obs.k].to(state.device)
         return self.location.sample(state, deterministic=deterministic, generator=generator, offset=offset)[0]
