@@ -106,7 +106,8 @@ def test_on_another_object_set_the_rows_take_its_own_teachers_and_no_mirror_for_
         table1.on_set(table1.ROWS["planner_copy"], str(tmp_path / "my_objects"), list(table1.PLANNER_COPY))
     # a part added to a row's composition (--add-config) counts too
     with pytest.raises(FileNotFoundError, match=r"my_objects_train65k_s10.npz"):
-        table1.on_set(table1.ROWS["line_scan"], str(tmp_path / "my_objects"), ["configs/line_scan.yaml", table1.LIBRARY])
+        table1.on_set(table1.ROWS["line_scan"], str(tmp_path / "my_objects"),
+                      ["configs/line_scan.yaml", table1.LIBRARY])
     assert table1.on_set(table1.ROWS["line_scan"], str(tmp_path / "my_objects"), ["configs/line_scan.yaml"])[1] == (
         "--data.objects", str(tmp_path / "my_objects"))
 

@@ -77,8 +77,8 @@ def candidate_mass(columns: np.ndarray, candidates: np.ndarray, index: np.ndarra
 def sampled_mass(codes: np.ndarray, index: np.ndarray, weight: np.ndarray, ends: np.ndarray, class_mass: np.ndarray,
                  samples: int, n_cells: int) -> tuple[np.ndarray, bool]:
     """(n_cells,) float64 every candidate's cells' weights over `samples` of each class's kept episodes drawn by
-    weight, or all of a class's where it keeps no more than `samples`: systematic draws, at every 1/samples of the class's weight
-    (class_mass[c]), each weighing 1/samples of it. codes (L, C) each library episode's cell per candidate, offset by
+    weight, or all of a class's where it keeps no more than `samples`: systematic draws, at every 1/samples of the
+    class's weight (class_mass[c]), each weighing 1/samples of it. codes (L, C) each library episode's cell per candidate, offset by
     the candidate's first cell; index, weight the kept episodes (each class one slice, ending before ends[c]).
     Returns the masses and whether any class was drawn."""
     mass, start, drawn = np.zeros(n_cells), 0, False
