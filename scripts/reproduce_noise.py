@@ -4,7 +4,7 @@ after 10 probes under the simulator's missed / false-contact noise, at noise rat
 - PointNet and DGCNN (k = 9) are trained supervised at each rate on clouds of 10 points sampled from the whole
   object surface at fresh poses of the train region, a `rate` share of them replaced by points of the pose
   volume (hg.sim.pointclouds); the checkpoint best on val clouds is scored on the test clouds at the same rate.
-  Their test clouds use the same test episodes (labels and poses) as docs/results/table1.md.
+  Their test clouds use the same test episodes (labels and poses) as docs/results/table1.md (hg.lightning.clouds).
 - Ours: Table 1's best variant, row planner_copy_mixed of scripts/reproduce_table1.py: planner_copy's checkpoints
   (trained without noise), its heads and its library classifier summed (`acc_mixed`), tested on those episodes with
   SensorNoise(miss_prob = rate, false_contact_prob = rate): each probe's reading is corrupted with probability
@@ -36,7 +36,6 @@ in noise_runs/, out of the merge). Last line printed: JSON of the mean accuracie
 from __future__ import annotations
 
 import argparse
-import copy
 import io
 import json
 import subprocess
@@ -49,81 +48,21 @@ import numpy as np
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-import torch  # noqa: E402
-import torch.nn.functional as F  # noqa: E402
 import yaml  # noqa: E402
 
 from hg.atomic import write_atomic  # noqa: E402
-from hg.lightning.data import EvalEpisodes  # noqa: E402
-from hg.nets import DGCNN, PointNet  # noqa: E402
+from hg.lightning.clouds import N_POINTS, NETS, train_cloud_classifier  # noqa: E402
 from hg.provenance import commit, hardware, repo_path  # noqa: E402
-from hg.sim import PoseRegions, Scene, load_object_set, sample_episodes  # noqa: E402
-from hg.sim.pointclouds import noisy_point_clouds  # noqa: E402
+from hg.sim import Scene, load_object_set  # noqa: E402
+from hg.sim.heldout import make_regions  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RATES = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5)
-N_POINTS = 10
 EVAL_SEED, VAL_EPISODES, TEST_EPISODES = 0, 1024, 2048  # as in reproduce_table1.py: the same test episodes
-POINT_SCALE = 2.0  # as HapticGlance.point_scale: coordinates of order 1
-NETS = {"pointnet": ("PointNet", lambda n_classes: PointNet(n_classes)),
-        "dgcnn": ("DGCNN (k=9)", lambda n_classes: DGCNN(n_classes, k=9))}
 TABLE_RUNS = "table1_runs"  # reproduce_table1.py's records, <out>/TABLE_RUNS/<row>-seed<N>.json
 OURS = "planner_copy_mixed"  # Table 1's best variant: planner_copy's heads and its library classifier summed
 PLANNER = "planner65k"  # Table 1's greedy planner row
 COLUMN = {"learned": "", "library": "_library", "mixed": "_mixed"}  # a prediction's suffix in the logged metrics
-# -- point-cloud baselines ---------------------------------------------------------------------------------
-def cloud_tensor(clouds: np.ndarray) -> torch.Tensor:
-    """Centred on the cloud's mean (the usual PointNet normalisation; the pose's position is not a class cue)."""
-    return torch.from_numpy((clouds - clouds.mean(1, keepdims=True)) * POINT_SCALE).float()
-
-
-def fixed_clouds(regions: PoseRegions, objects, split: str, n_episodes: int, rate: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """The split's fixed episodes (the ones the probing models meet) as clouds, seeded by split and rate only."""
-    batches = EvalEpisodes(regions, split, n_episodes, 256, len(objects), EVAL_SEED).batches
-    labels = np.concatenate([b["labels"].numpy() for b in batches])
-    poses = np.concatenate([b["poses"].numpy() for b in batches])
-    rng = np.random.default_rng([EVAL_SEED, split == "test", int(round(rate * 100))])
-    clouds, _ = noisy_point_clouds(regions.scene, objects, labels, poses, N_POINTS, rate, rng)
-    return cloud_tensor(clouds), torch.from_numpy(labels)
-
-
-@torch.no_grad()
-def accuracy(net: torch.nn.Module, clouds: torch.Tensor, labels: torch.Tensor) -> float:
-    net.eval()
-    return float((net(clouds).argmax(-1) == labels).float().mean())
-
-
-def train_point_cloud_net(name: str, rate: float, seed: int, steps: int, batch_size: int) -> dict:
-    """Supervised training on fresh train-region clouds; the state best on val is scored on test."""
-    torch.manual_seed(seed)
-    scene, objects = Scene(), load_object_set("hg4")
-    # the regions of the probing model it is compared with (planner_copy: its teacher files are in the cells)
-    regions = PoseRegions(scene, seed=EVAL_SEED)
-    val, test = fixed_clouds(regions, objects, "val", VAL_EPISODES, rate), fixed_clouds(regions, objects, "test",
-                                                                                         TEST_EPISODES, rate)
-    net = NETS[name][1](len(objects))
-    optimiser = torch.optim.Adam(net.parameters(), lr=1e-3)
-    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, steps)
-    rng = np.random.default_rng([seed, int(round(rate * 100))])
-    best_val, best_state, start = -1.0, None, time.time()
-    for step in range(1, steps + 1):
-        labels, poses = sample_episodes(regions, "train", batch_size, len(objects), rng)
-        clouds, _ = noisy_point_clouds(scene, objects, labels, poses, N_POINTS, rate, rng)
-        net.train()
-        loss = F.cross_entropy(net(cloud_tensor(clouds)), torch.from_numpy(labels))
-        optimiser.zero_grad()
-        loss.backward()
-        optimiser.step()
-        schedule.step()
-        if step % 250 == 0 or step == steps:
-            val_acc = accuracy(net, *val)
-            if val_acc > best_val:
-                best_val, best_state = val_acc, copy.deepcopy(net.state_dict())
-    net.load_state_dict(best_state)
-    return {"accuracy": round(accuracy(net, *test), 4), "best_val_acc": round(best_val, 4), "steps": steps,
-            "batch_size": batch_size, "train_wall_s": round(time.time() - start, 1)}
-
-
 # -- our model under sensor noise --------------------------------------------------------------------------
 def table_runs(out: Path, row: str) -> dict[int, tuple[Path, dict]]:
     """Table 1's records of `row` by training seed (and where each is), as scripts/reproduce_table1.py wrote them."""
@@ -435,7 +374,10 @@ def main() -> None:
                 result = plan_under_noise(*table["planner"][seed], rate)
                 result["label"] = "greedy planner under faults, fault-aware, may re-probe (beyond the paper, no learning)"
             else:
-                result = train_point_cloud_net(model, rate, seed, args.steps, args.batch_size)
+                # the table's regions (the data module's default), whose test episodes every model here meets
+                result = train_cloud_classifier(model, load_object_set("hg4"), make_regions("across_line", Scene(),
+                                                EVAL_SEED), rate, seed, args.steps, args.batch_size, VAL_EPISODES,
+                                                TEST_EPISODES, EVAL_SEED)
                 result["label"] = NETS[model][0]
             result = {"commit": code_commit, "hardware": hardware()} | result  # a reused table run keeps its own
             result.update(model=model, rate=rate, seed=seed, **({"row": row} if row else {}))

@@ -54,6 +54,7 @@ from hg.sweep import Job, Stopped, run_jobs
 
 ROOT = Path(__file__).resolve().parents[1]
 TEST_EPISODES = 2048  # the fixed held-out test set every row is scored on (data.eval_seed 0)
+CLOUD_STEPS, CLOUD_BATCH = 1000, 64  # the point-cloud baselines' training, as the noise study's (reproduce_noise.py)
 EVAL_SEED = 0
 SEEDS = (0, 1, 2)  # training seeds of every row (the protocol)
 RUNS = "table1_runs"  # <out>/RUNS: the records of the rows defined here
@@ -68,9 +69,10 @@ COLUMN = {"learned": "", "library": "_library", "mixed": "_mixed"}  # a predicti
 
 @dataclass(frozen=True)
 class Row:
-    """A row of the table: a composition of configs (+ CLI overrides) trained and tested, or scripts/plan.py run with
+    """A row of the table: a composition of configs (+ CLI overrides) trained and tested, scripts/plan.py run with
     `plan` (a planner row; `probes` says which of its results: "planner", or probes placed by no one, "fixed" or
-    "random", named by the same library classifier)."""
+    "random", named by the same library classifier), or a point-cloud baseline `cloud` (hg.lightning.clouds.NETS)
+    trained supervised on clean surface points, no probing."""
 
     label: str
     prediction: Prediction
@@ -78,6 +80,7 @@ class Row:
     configs: tuple[str, ...] = ()  # relative to the repository, combined in order (later ones override)
     overrides: tuple[str, ...] = ()  # CLI overrides after the configs
     plan: tuple[str, ...] = ()  # a planner row: scripts/plan.py's library and prober arguments
+    cloud: str | None = None  # a point-cloud baseline: PointNet or DGCNN on 10 clean surface points
     scores: str | None = None  # a row that trains nothing: it scores that row's best checkpoints (same seed) as its
     # composition reads them (e.g. with the library classifier), so it runs after that row
     paper: str | None = None  # the paper's column this row reproduces
@@ -86,7 +89,8 @@ class Row:
     def definition(self) -> dict:
         """What makes the row's numbers: a record made otherwise is another row's."""
         return {"prediction": self.prediction, "probes": self.probes, "configs": list(self.configs),
-                "overrides": list(self.overrides), "plan": list(self.plan), "scores": self.scores}
+                "overrides": list(self.overrides), "plan": list(self.plan), "scores": self.scores,
+                **({"cloud": self.cloud} if self.cloud else {})}  # (rows recorded before clouds have no such key)
 
 
 TOUCH_SETS, LONG, STABLE_RL = "configs/parts/touch_sets.yaml", "configs/parts/long.yaml", "configs/parts/stable_rl.yaml"
@@ -124,6 +128,10 @@ ROWS = {
     "candidate_scan_library": Row("straight centre-out scan of the planner's candidate places, named by planner_copy's "
                                   "library classifier (no learning)", "library", "fixed",
                                   plan=(*CLASSIFIER_LIBRARY, "--fixed"), was="candidate_scan_namer65k"),
+    "pointnet": Row("PointNet on 10 clean surface points (uniform over the whole surface; after k: the same net "
+                    "reading the first k)", "learned", "random", cloud="pointnet"),
+    "dgcnn": Row("DGCNN (k=9) on 10 clean surface points (uniform over the whole surface; after k: the same net "
+                 "reading the first k)", "learned", "random", cloud="dgcnn"),
     "random_candidates_library": Row("random candidates of the planner, named by planner_copy's library classifier "
                                      "(no learning)", "library", "random", plan=(*CLASSIFIER_LIBRARY, "--random"),
                                      was="random_candidates_namer65k"),
@@ -226,7 +234,9 @@ def train_and_test(row: str, seed: int, runs_dir: Path, out: Path, jobs: int, te
     code_commit = commit()  # the code this run trains with, read before it starts
     composition = [*spec.configs, *add_configs]
     plan, overrides = on_set(spec, objects, composition)
-    if plan:
+    if spec.cloud:
+        facts = cloud_and_test(spec.cloud, seed, test_episodes, objects)
+    elif plan:
         facts = plan_and_test(plan, seed, test_episodes, spec.probes, objects)
     else:
         checkpoint = None
@@ -283,6 +293,28 @@ def plan_and_test(plan: tuple[str, ...], seed: int, test_episodes: int, probes: 
             "accuracy": result["accuracy"], "accuracy_mean_action": None, "best_val_acc": None,
             "best_checkpoint": None, "train_wall_s": round(time.time() - start, 1), "test_wall_s": 0.0,
             "test_episodes": test_episodes, "test_fingerprint": test_fingerprint(data), "torch_threads": 1}
+
+
+def cloud_and_test(name: str, seed: int, test_episodes: int, objects: str = "hg4") -> dict:
+    """A point-cloud baseline's run: NETS[name] trained supervised on clouds of 10 clean surface points of fresh
+    training poses (hg.lightning.clouds, the noise study's baseline at rate 0), the state best on the validation
+    episodes' clouds scored on the test episodes' clouds, read whole and by their first k points (the accuracy after
+    k, for the table's columns; the net was trained on 10)."""
+    import torch
+
+    from hg.lightning.clouds import train_cloud_classifier
+    from hg.lightning.data import ProbeDataModule
+    from hg.lightning.experiment import test_fingerprint
+
+    data, steps = ProbeDataModule(objects=objects, test_episodes=test_episodes, eval_seed=EVAL_SEED), CLOUD_STEPS
+    result = train_cloud_classifier(name, data.object_set, data.regions, 0.0, seed, steps, CLOUD_BATCH,
+                                    data.hparams.val_episodes, test_episodes, EVAL_SEED, first_k=True)
+    return {"command": f"hg.lightning.clouds.train_cloud_classifier({name!r}, rate=0, seed={seed}, steps={steps}, "
+                       f"batch_size={CLOUD_BATCH})", "max_steps": steps, "resumed_from_step": 0,
+            "accuracy": result["accuracy_first_k"], "accuracy_mean_action": None,
+            "best_val_acc": result["best_val_acc"], "best_checkpoint": None, "train_wall_s": result["train_wall_s"],
+            "test_wall_s": 0.0, "test_episodes": test_episodes, "test_fingerprint": test_fingerprint(data),
+            "torch_threads": torch.get_num_threads()}
 
 
 # -- records ------------------------------------------------------------------------------------------------

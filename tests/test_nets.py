@@ -329,9 +329,15 @@ def test_pointcloud_shapes(make) -> None:
     assert net(torch.randn(1, 10, 3)).shape == (1, 4)
 
 
-def test_dgcnn_k_must_be_below_point_count() -> None:
-    with pytest.raises(ValueError, match="k=10"):
-        DGCNN(4, k=10)(torch.randn(2, 10, 3))
+def test_dgcnn_reads_a_cloud_of_no_more_than_k_points_as_one_neighbourhood() -> None:
+    """Fewer points than neighbours (Table 1's DGCNN row reads the first k of its 10): every point is each one's
+    neighbour, so the output is the same whatever the neighbour count beyond the cloud's size."""
+    torch.manual_seed(0)
+    net, cloud = DGCNN(4, k=9).eval(), torch.randn(2, 5, 3)
+    wider = DGCNN(4, k=12).eval()
+    wider.load_state_dict(net.state_dict())
+    torch.testing.assert_close(net(cloud), wider(cloud))
+    assert net(cloud[:, :1]).shape == (2, 4) and torch.isfinite(net(cloud[:, :1])).all()
 
 
 @pytest.mark.parametrize(

@@ -63,6 +63,9 @@ def test_rows_are_compositions_that_predict_and_probe_as_they_say():
     old_rows = {json.loads(p.read_text())["row"] for p in (ROOT / "docs/results/runs").glob("*.json")}
     for name, row in table1.ROWS.items():
         assert row.was is None or row.was in old_rows, f"{name} replaces {row.was}, no hg4 row of that name"
+        if row.cloud:  # a point-cloud baseline: its own net on surface points, no composition, no probing
+            assert row.prediction == "learned" and row.probes == "random" and not row.configs and not row.plan
+            continue
         if row.plan:  # the planner's own Bayes classifier names its probes
             assert row.prediction == "library" and not row.configs and row.probes in ("planner", "fixed", "random")
             continue
@@ -110,6 +113,23 @@ def test_on_another_object_set_the_rows_take_its_own_teachers_and_no_mirror_for_
                       ["configs/line_scan.yaml", table1.LIBRARY])
     assert table1.on_set(table1.ROWS["line_scan"], str(tmp_path / "my_objects"), ["configs/line_scan.yaml"])[1] == (
         "--data.objects", str(tmp_path / "my_objects"))
+
+
+def test_point_cloud_rows_train_on_surface_points_and_are_merged_beside_the_probing_rows(tmp_path, monkeypatch):
+    """PointNet and DGCNN (3 steps here): a record on the table's test episodes with the accuracy reading the first
+    k of the 10 points, k = 1..10 (DGCNN reads fewer points than its 9 neighbours as one neighbourhood), merged."""
+    table1 = script("reproduce_table1")
+    monkeypatch.setattr(table1, "CLOUD_STEPS", 3)
+    for row in ("pointnet", "dgcnn"):
+        table1.train_and_test(row, 0, tmp_path / "runs", tmp_path, 1, test_episodes=64)
+        record = json.loads(table1.record_path(tmp_path, row, 0).read_text())
+        assert record["max_steps"] == 3 and record["definition"]["cloud"] == row and record["split"] == "test"
+        assert len(record["accuracy"]) == 10 and all(0 <= a <= 1 for a in record["accuracy"])
+    fake_record(table1, tmp_path, "line_scan", 0, [0.3] * 10, fingerprint=record["test_fingerprint"],
+                test_episodes=64)
+    merged = table1.merge(tmp_path)  # the same test episodes as a probing row's: merged beside it
+    assert set(merged) == {"commit", "line_scan", "pointnet", "dgcnn"}
+    assert "PointNet on 10 clean surface points" in (tmp_path / "table1.md").read_text()
 
 
 def test_changed_hyperparameters_compares_injected_parts_field_by_field():

@@ -70,12 +70,11 @@ class DGCNN(nn.Module):
         self.head = _head(2 * 1024, n_classes, act, dropout)
 
     def forward(self, points: Tensor) -> Tensor:
-        """(B, P, in_dim) -> logits (B, n_classes); needs k < P."""
-        if self.k >= points.shape[1]:
-            raise ValueError(f"DGCNN k={self.k} must be below the number of points P={points.shape[1]}")
-        x, layers = points.transpose(1, 2), []
+        """(B, P, in_dim) -> logits (B, n_classes); a cloud of no more than k points is one neighbourhood (every
+        point, itself included), so the net trained on 10 points can read fewer."""
+        x, layers, k = points.transpose(1, 2), [], min(self.k, points.shape[1])
         for conv in self.edge_convs:
-            x = conv(_edge_features(x, self.k)).amax(-1)
+            x = conv(_edge_features(x, k)).amax(-1)
             layers.append(x)
         x = self.fuse(torch.cat(layers, 1))
         return self.head(torch.cat([x.amax(-1), x.mean(-1)], 1))
