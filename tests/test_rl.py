@@ -11,6 +11,7 @@ from hg.lightning.data import episode_batch
 from hg.nets import PCRN, Dims
 from hg.policies import GaussianPolicy, LineScan, Observation, Policy
 from hg.rl import FollowPrior, HybridLoss, ImitateTeacher, Warmup, discounted_returns, rollout
+from hg.rl.loss import rewards_of
 from hg.sim import PoseRegions, ProbeSimulator, SensorNoise
 
 N_PROBES, POINT_SCALE = 4, 2.0
@@ -106,13 +107,22 @@ def test_touch_rewards_are_the_contact_flags_whatever_the_classifier_says():
     """The diagnostic reward: r_k = T_k, so the returns count the touches to come and the prediction plays no part."""
     logits, labels, log_pi, baseline = loss_inputs()
     touched = torch.rand(log_pi.shape, generator=torch.Generator().manual_seed(0)) < 0.4
-    terms = HybridLoss(gamma=0.5, reward="touch")(logits, labels, log_pi, baseline, touched=touched)
+    points = torch.cat([torch.rand(*log_pi.shape, 3), touched[..., None].float()], -1)
+    terms = HybridLoss(gamma=0.5, reward="touch")(logits, labels, log_pi, baseline, points=points)
     assert terms["reward"] == touched.float().mean()
     torch.testing.assert_close(terms["loss_baseline"], F.mse_loss(baseline, discounted_returns(touched.float(), 0.5)))
-    flipped = HybridLoss(gamma=0.5, reward="touch")(-logits, labels, log_pi, baseline, touched=touched)
+    flipped = HybridLoss(gamma=0.5, reward="touch")(-logits, labels, log_pi, baseline, points=points)
     torch.testing.assert_close(flipped["loss_policy"], terms["loss_policy"])
-    with pytest.raises(ValueError, match="needs the probes' contact flags"):
+    with pytest.raises(ValueError, match="needs the probes' points"):
         HybridLoss(reward="touch")(logits, labels, log_pi, baseline)
+
+
+def test_new_touch_rewards_pay_a_touch_by_its_distance_to_the_earlier_ones():
+    """A first touch earns 1, a miss 0, a touch on an earlier one's spot 0, one half a spread away 0.5."""
+    points = torch.tensor([[[0.0, 0.0, 0.0, 1.0], [0.3, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0], [0.05, 0.0, 0.0, 1.0],
+                            [0.0, 1.0, 0.0, 1.0]]])
+    rewards = rewards_of(torch.zeros(1, 5, 2), torch.zeros(1, dtype=torch.long), "new_touch", points, spread=0.1)
+    torch.testing.assert_close(rewards, torch.tensor([[1.0, 0.0, 0.0, 0.5, 1.0]]))
 
 
 def test_loss_settings_are_checked():

@@ -117,12 +117,11 @@ class HapticGlance(pl.LightningModule):
         evaluated = None
         if regime != "classify" and isinstance(self.policy, LearnedPolicy):
             evaluated = self.policy.evaluate(rep, rollout.actions, rollout.points)
-        touched = rollout.points[..., 3]  # the "touch" reward's, logged at every step
         if regime == "reinforce" and evaluated is not None:
             terms = self.loss(logits, labels, evaluated.log_pi, evaluated.baseline, float(self.policy.std_scale),
-                              touched=touched)
-        else:
-            terms = self.loss(logits, labels, touched=touched)
+                              points=rollout.points)
+        else:  # the reward is logged at every step, whoever pays it
+            terms = self.loss(logits, labels, points=rollout.points)
         if evaluated is not None:
             extra = dict(evaluated.losses)
             if regime == "imitate":

@@ -9,8 +9,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-Reward = Literal["correct", "log_gain", "touch"]
-REWARDS = ("correct", "log_gain", "touch")
+Reward = Literal["correct", "log_gain", "touch", "new_touch"]
+REWARDS = ("correct", "log_gain", "touch", "new_touch")
 
 
 def discounted_returns(rewards: Tensor, gamma: float) -> Tensor:
@@ -25,17 +25,26 @@ def discounted_returns(rewards: Tensor, gamma: float) -> Tensor:
     return returns
 
 
-def rewards_of(logits: Tensor, labels: Tensor, reward: Reward, touched: Tensor | None = None) -> Tensor:
+def rewards_of(logits: Tensor, labels: Tensor, reward: Reward, points: Tensor | None = None,
+               spread: float = 0.1) -> Tensor:
     """r_k (B, N) of the prediction after each probe: 1 when it is right (the paper), or beyond the paper
-    "log_gain", what probe k added to log p(true class) (they sum to log p_N - log(1/C)), or "touch", 1 when probe k
-    touched (touched (B, N)): a diagnostic, the simplest thing a policy can learn, which says whether the policy
-    gradient learns at all when the classifier's verdict is left out of the reward."""
+    "log_gain", what probe k added to log p(true class) (they sum to log p_N - log(1/C)); or paid by the probe itself,
+    from its point (points (B, N, 4), X, Y, Z, T): "touch", 1 when probe k touched, a diagnostic of whether the policy
+    gradient learns at all when the classifier's verdict is left out of the reward; "new_touch", a touch paid by its
+    distance to the nearest earlier touch, in units of `spread` (capped at 1; a first touch earns 1), so that
+    touching the same spot again earns nothing (issue #57's study)."""
     if reward == "correct":
         return (logits.argmax(-1) == labels[:, None]).float()
-    if reward == "touch":
-        if touched is None:
-            raise ValueError("reward='touch' needs the probes' contact flags (touched)")
-        return touched.float()
+    if reward in ("touch", "new_touch"):
+        if points is None:
+            raise ValueError(f"reward={reward!r} needs the probes' points")
+        touched = points[..., 3] > 0.5
+        if reward == "touch":
+            return touched.float()
+        earlier = torch.ones(points.shape[1], points.shape[1], dtype=torch.bool, device=points.device).tril(-1)
+        distance = torch.cdist(points[..., :3], points[..., :3]).masked_fill(~(earlier & touched[:, None, :]),
+                                                                             math.inf)
+        return touched.float() * (distance.min(-1).values / spread).clamp(max=1.0)
     if reward != "log_gain":
         raise ValueError(f"reward={reward!r}: expected one of {REWARDS}")
     n_probes = logits.shape[1]
@@ -54,6 +63,7 @@ class HybridLoss:
     reward: Reward = "correct"
     normalize_advantage: bool = False
     advantage: Literal["return", "reward"] = "return"
+    spread: float = 0.1  # "new_touch": the distance (in the rollout's point units: 5 cm at point_scale 2) paid in full
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.gamma <= 1.0:
@@ -68,15 +78,15 @@ class HybridLoss:
         return self.beta * policy_scale
 
     def __call__(self, logits: Tensor, labels: Tensor, log_pi: Tensor | None = None, baseline: Tensor | None = None,
-                 policy_scale: float = 1.0, touched: Tensor | None = None) -> dict[str, Tensor]:
+                 policy_scale: float = 1.0, points: Tensor | None = None) -> dict[str, Tensor]:
         """logits (B, N, C), the prediction after each probe; log_pi (B, N) log pi(a_k | s_k) of the detached
-        requests; baseline (B, N) b_k from detached states; touched (B, N) the probes' contact flags (the "touch"
-        reward reads them). Without a policy to train (a fixed scan, or a teacher's probes) only the cross-entropy
+        requests; baseline (B, N) b_k from detached states; points (B, N, 4) the probes' points (the rewards a probe
+        pays itself read them). Without a policy to train (a fixed scan, or a teacher's probes) only the cross-entropy
         remains. policy_scale multiplies beta: the gradient of log N grows as 1 / std, so a shrinking std must not let
         the policy term crowd the others out of the clipped gradient."""
         n_probes = logits.shape[1]
         correct = (logits.argmax(-1) == labels[:, None]).float()
-        rewards = rewards_of(logits, labels, self.reward, touched)  # r_k, no gradient
+        rewards = rewards_of(logits, labels, self.reward, points, self.spread)  # r_k, no gradient
         # sum_o y_o log pi_c(o), on the prediction after every probe
         cross_entropy = F.cross_entropy(logits.flatten(0, 1), labels.repeat_interleave(n_probes))
         terms = {"loss_ce": cross_entropy, "reward": rewards.mean(), "acc": correct[:, -1].mean()}
