@@ -349,6 +349,9 @@ def main() -> None:
             name = f"{model}-{row}" if row else model  # ours, ours_trained and planner: per table row
             path = args.out / "noise_runs" / f"{name}-rate{round(rate * 100):02d}-seed{seed}.json"
             made = json.loads(path.read_text()) if path.is_file() else None
+            if made and model in NETS and made.get("regions") != "across_line":  # the hg4 research's, in cells
+                raise ValueError(f"{path}: a point-cloud baseline trained in the old regions (cells); the table's "
+                                 "are across_line: move it away to train this one")
             if made and (model != "ours" or made["checkpoint"] == table["ours"][seed][1]["best_checkpoint"]):
                 if model == "ours_trained" and rate > 0:  # made as this run would make it (e.g. the same teachers)?
                     runs = table_runs(args.out, args.trained_row)
@@ -378,7 +381,7 @@ def main() -> None:
                 result = train_cloud_classifier(model, load_object_set("hg4"), make_regions("across_line", Scene(),
                                                 EVAL_SEED), rate, seed, args.steps, args.batch_size, VAL_EPISODES,
                                                 TEST_EPISODES, EVAL_SEED)
-                result["label"] = NETS[model][0]
+                result["label"], result["regions"] = NETS[model][0], "across_line"
             result = {"commit": code_commit, "hardware": hardware()} | result  # a reused table run keeps its own
             result.update(model=model, rate=rate, seed=seed, **({"row": row} if row else {}))
             write_atomic(path, json.dumps(result, indent=1) + "\n")

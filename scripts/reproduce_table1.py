@@ -308,7 +308,8 @@ def cloud_and_test(name: str, seed: int, test_episodes: int, objects: str = "hg4
 
     data, steps = ProbeDataModule(objects=objects, test_episodes=test_episodes, eval_seed=EVAL_SEED), CLOUD_STEPS
     result = train_cloud_classifier(name, data.object_set, data.regions, 0.0, seed, steps, CLOUD_BATCH,
-                                    data.hparams.val_episodes, test_episodes, EVAL_SEED, first_k=True)
+                                    data.hparams.val_episodes, test_episodes, EVAL_SEED, first_k=True,
+                                    eval_batch_size=data.hparams.eval_batch_size)  # the fingerprint's episodes
     return {"command": f"hg.lightning.clouds.train_cloud_classifier({name!r}, rate=0, seed={seed}, steps={steps}, "
                        f"batch_size={CLOUD_BATCH})", "max_steps": steps, "resumed_from_step": 0,
             "accuracy": result["accuracy_first_k"], "accuracy_mean_action": None,
@@ -335,7 +336,7 @@ def check_definition(path: Path, record: dict, composition: list[str] | None = N
     if record.get("definition") != spec.definition():
         raise ValueError(f"{path}: made by another definition of row {record['row']} ({record.get('definition')}; now "
                          f"{spec.definition()}); move it away to run this one")
-    if composition is not None and not spec.plan and record.get("composition") != composition:
+    if composition is not None and not spec.plan and not spec.cloud and record.get("composition") != composition:
         raise ValueError(f"{path}: made with {record.get('composition')}, this run asks {composition}; move it away "
                          "(or --out elsewhere) to run this one")
 
@@ -420,7 +421,8 @@ def targets(table: dict[str, dict]) -> list[str]:
     short = {k: acc[k - 1] - paper_best[k] for k in paper_best if acc[k - 1] < paper_best[k]}
     lines.append("- At every probe count at least the paper's best entry: " + (
         "met." if not short else "not met at " + ", ".join(f"{k} probes ({d:+.3f})" for k, d in short.items()) + "."))
-    for other in (row for row in table if ROWS[row].probes in ("fixed", "random")):  # probes placed by no one
+    placed_by_no_one = (row for row in table if ROWS[row].probes in ("fixed", "random") and not ROWS[row].cloud)
+    for other in placed_by_no_one:
         prediction = ROWS[other].prediction
         mine = best_variant(table, prediction)
         label = table[other]["label"]

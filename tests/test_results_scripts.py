@@ -125,6 +125,7 @@ def test_point_cloud_rows_train_on_surface_points_and_are_merged_beside_the_prob
         record = json.loads(table1.record_path(tmp_path, row, 0).read_text())
         assert record["max_steps"] == 3 and record["definition"]["cloud"] == row and record["split"] == "test"
         assert len(record["accuracy"]) == 10 and all(0 <= a <= 1 for a in record["accuracy"])
+        table1.check_definition(table1.record_path(tmp_path, row, 0), record, [])  # a second invocation reuses it
     fake_record(table1, tmp_path, "line_scan", 0, [0.3] * 10, fingerprint=record["test_fingerprint"],
                 test_episodes=64)
     merged = table1.merge(tmp_path)  # the same test episodes as a probing row's: merged beside it

@@ -118,11 +118,16 @@ def test_touch_rewards_are_the_contact_flags_whatever_the_classifier_says():
 
 
 def test_new_touch_rewards_pay_a_touch_by_its_distance_to_the_earlier_ones():
-    """A first touch earns 1, a miss 0, a touch on an earlier one's spot 0, one half a spread away 0.5."""
+    """A first touch earns 1, a miss 0, a touch on an earlier touch's spot 0, one half a spread away 0.5; an earlier
+    miss at the same spot does not count (episode 2: its touch is a first touch)."""
     points = torch.tensor([[[0.0, 0.0, 0.0, 1.0], [0.3, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0], [0.05, 0.0, 0.0, 1.0],
-                            [0.0, 1.0, 0.0, 1.0]]])
-    rewards = rewards_of(torch.zeros(1, 5, 2), torch.zeros(1, dtype=torch.long), "new_touch", points, spread=0.1)
-    torch.testing.assert_close(rewards, torch.tensor([[1.0, 0.0, 0.0, 0.5, 1.0]]))
+                            [0.0, 1.0, 0.0, 1.0]],
+                           [[0.3, 0.0, 0.0, 0.0], [0.3, 0.0, 0.0, 1.0], [0.35, 0.0, 0.0, 1.0], [0.0, 0.0, 0.0, 0.0],
+                            [0.3, 0.0, 0.0, 1.0]]])
+    rewards = rewards_of(torch.zeros(2, 5, 2), torch.zeros(2, dtype=torch.long), "new_touch", points, spread=0.1)
+    torch.testing.assert_close(rewards, torch.tensor([[1.0, 0.0, 0.0, 0.5, 1.0], [0.0, 1.0, 0.5, 0.0, 0.0]]))
+    with pytest.raises(ValueError, match="loss.spread=0"):
+        HybridLoss(reward="new_touch", spread=0)
 
 
 def test_loss_settings_are_checked():

@@ -31,10 +31,11 @@ def cloud_tensor(clouds: np.ndarray) -> torch.Tensor:
     return torch.from_numpy((clouds - clouds.mean(1, keepdims=True)) * POINT_SCALE).float()
 
 
-def fixed_clouds(regions: Regions, objects: ObjectSet, split: str, n_episodes: int, rate: float,
-                 eval_seed: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """The split's fixed episodes (the ones the probing models meet) as clouds, seeded by split and rate only."""
-    batches = EvalEpisodes(regions, split, n_episodes, 256, len(objects), eval_seed).batches
+def fixed_clouds(regions: Regions, objects: ObjectSet, split: str, n_episodes: int, rate: float, eval_seed: int,
+                 eval_batch_size: int = 256) -> tuple[torch.Tensor, torch.Tensor]:
+    """The split's fixed episodes (the ones the probing models meet, drawn batch by batch as the data module's
+    eval_batch_size draws them) as clouds, seeded by split and rate only."""
+    batches = EvalEpisodes(regions, split, n_episodes, eval_batch_size, len(objects), eval_seed).batches
     labels = np.concatenate([b["labels"].numpy() for b in batches])
     poses = np.concatenate([b["poses"].numpy() for b in batches])
     rng = np.random.default_rng([eval_seed, split == "test", int(round(rate * 100))])
@@ -50,7 +51,7 @@ def accuracy(net: torch.nn.Module, clouds: torch.Tensor, labels: torch.Tensor) -
 
 def train_cloud_classifier(name: str, objects: ObjectSet, regions: Regions, rate: float, seed: int, steps: int,
                            batch_size: int, val_episodes: int, test_episodes: int, eval_seed: int,
-                           first_k: bool = False) -> dict:
+                           first_k: bool = False, eval_batch_size: int = 256) -> dict:
     """Supervised training of NETS[name] on fresh train-region clouds at noise `rate`; the state best on the
     validation clouds (every 250 steps and at the end) is scored on the test clouds. Returns its test accuracy, best
     validation accuracy, sizes and training wall time; with `first_k` also `accuracy_first_k`, the test accuracy
@@ -58,8 +59,8 @@ def train_cloud_classifier(name: str, objects: ObjectSet, regions: Regions, rate
     if name not in NETS:
         raise ValueError(f"point-cloud baseline {name!r}: expected one of {sorted(NETS)}")
     torch.manual_seed(seed)
-    val = fixed_clouds(regions, objects, "val", val_episodes, rate, eval_seed)
-    test = fixed_clouds(regions, objects, "test", test_episodes, rate, eval_seed)
+    val = fixed_clouds(regions, objects, "val", val_episodes, rate, eval_seed, eval_batch_size)
+    test = fixed_clouds(regions, objects, "test", test_episodes, rate, eval_seed, eval_batch_size)
     net = NETS[name][1](len(objects))
     optimiser = torch.optim.Adam(net.parameters(), lr=1e-3)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, steps)

@@ -44,7 +44,7 @@ def rewards_of(logits: Tensor, labels: Tensor, reward: Reward, points: Tensor | 
         earlier = torch.ones(points.shape[1], points.shape[1], dtype=torch.bool, device=points.device).tril(-1)
         distance = torch.cdist(points[..., :3], points[..., :3]).masked_fill(~(earlier & touched[:, None, :]),
                                                                              math.inf)
-        return touched.float() * (distance.min(-1).values / spread).clamp(max=1.0)
+        return torch.where(touched, (distance.min(-1).values / spread).clamp(max=1.0), 0.0)
     if reward != "log_gain":
         raise ValueError(f"reward={reward!r}: expected one of {REWARDS}")
     n_probes = logits.shape[1]
@@ -70,6 +70,8 @@ class HybridLoss:
             raise ValueError(f"loss.gamma={self.gamma}: the discount must be in [0, 1]")
         if self.reward not in REWARDS:
             raise ValueError(f"loss.reward={self.reward!r}: expected one of {REWARDS}")
+        if not self.spread > 0:
+            raise ValueError(f"loss.spread={self.spread}: the distance a new touch is paid in full must be > 0")
         if self.advantage not in ("return", "reward"):
             raise ValueError(f"loss.advantage={self.advantage!r}: expected 'return' or 'reward'")
 
