@@ -162,12 +162,13 @@ def on_set(spec: Row, objects: str, composition: list[str]) -> tuple[tuple[str, 
     from hg.sim.symmetry import object_symmetries
 
     mirror = all(s.mirror for s in object_symmetries(load_object_set(objects)))
-    plan = spec.plan if mirror else tuple(a for a in spec.plan if a != "--mirror")
+    on_this_set = lambda args: args if mirror else tuple(a for a in args if a != "--mirror")  # noqa: E731
+    plan = on_this_set(spec.plan)
     overrides = (*spec.overrides, "--data.objects", objects)
     copies, names = PLANNER_COPY[0] in composition, LIBRARY in composition
     if copies or names:
         teachers = teacher_files(objects)
-        library = PLANNER_LIBRARY if mirror else tuple(a for a in PLANNER_LIBRARY if a != "--mirror")
+        library = on_this_set(PLANNER_LIBRARY)
         for seed, path in teachers:
             if not (ROOT / path).is_file():
                 raise FileNotFoundError(

@@ -52,10 +52,9 @@ class GaussianPolicy(LearnedPolicy):
         return torch.atanh(self.prior.requests(points).clamp(-0.9, 0.9))
 
     def act(self, obs: Observation, deterministic: bool | Tensor, generator: torch.Generator) -> Tensor:
-        count = None  # the count after probe k: states()' row k reads it too
-        if self.count_width and obs.k:
-            count = torch.eye(self.count_width, device=obs.points.device)[obs.k - 1].expand(len(obs.points), -1)
-        state = self.location.state(obs.rep_sum, obs.k, batch_size=len(obs.points), extra=count)
+        counts = self.counts(len(obs.points), obs.k, obs.points.device) if obs.k else None  # a view, no copy
+        state = self.location.state(obs.rep_sum, obs.k, batch_size=len(obs.points),
+                                    extra=None if counts is None else counts[:, -1])
         offsets = self.offsets(obs.points)
         offset = None if offsets is None else offsets[:, obs.k].to(state.device)
         return self.location.sample(state, deterministic=deterministic, generator=generator, offset=offset)[0]
