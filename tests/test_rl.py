@@ -128,6 +128,10 @@ def test_new_touch_rewards_pay_a_touch_by_its_distance_to_the_earlier_ones():
     torch.testing.assert_close(rewards, torch.tensor([[1.0, 0.0, 0.0, 0.5, 1.0], [0.0, 1.0, 0.5, 0.0, 0.0]]))
     with pytest.raises(ValueError, match="loss.spread=0"):
         HybridLoss(reward="new_touch", spread=0)
+    # a sum pays each term: here the class reward adds 1 where the prediction (class 0 of all-zero logits) is right
+    labels = torch.tensor([0, 1])
+    summed = rewards_of(torch.zeros(2, 5, 2), labels, "new_touch+correct", points, spread=0.1)
+    torch.testing.assert_close(summed, rewards + torch.tensor([[1.0], [0.0]]))
 
 
 def test_loss_settings_are_checked():
@@ -135,6 +139,8 @@ def test_loss_settings_are_checked():
         HybridLoss(gamma=1.5)
     with pytest.raises(ValueError, match="loss.reward='contact'"):
         HybridLoss(reward="contact")
+    with pytest.raises(ValueError, match="loss.reward='new_touch\\+contact'"):
+        HybridLoss(reward="new_touch+contact")
     with pytest.raises(ValueError, match="loss.advantage='q'"):
         HybridLoss(advantage="q")
 

@@ -9,8 +9,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-Reward = Literal["correct", "log_gain", "touch", "new_touch"]
 REWARDS = ("correct", "log_gain", "touch", "new_touch")
+Reward = str  # one of REWARDS, or a sum of them joined by "+" (e.g. "new_touch+correct")
 
 
 def discounted_returns(rewards: Tensor, gamma: float) -> Tensor:
@@ -32,7 +32,9 @@ def rewards_of(logits: Tensor, labels: Tensor, reward: Reward, points: Tensor | 
     from its point (points (B, N, 4), X, Y, Z, T): "touch", 1 when probe k touched, a diagnostic of whether the policy
     gradient learns at all when the classifier's verdict is left out of the reward; "new_touch", a touch paid by its
     distance to the nearest earlier touch, in units of `spread` (capped at 1; a first touch earns 1), so that
-    touching the same spot again earns nothing (issue #57's study)."""
+    touching the same spot again earns nothing (issue #57's study). A sum, "new_touch+correct", pays each term."""
+    if "+" in reward:
+        return sum(rewards_of(logits, labels, term, points, spread) for term in reward.split("+"))
     if reward == "correct":
         return (logits.argmax(-1) == labels[:, None]).float()
     if reward in ("touch", "new_touch"):
@@ -68,8 +70,8 @@ class HybridLoss:
     def __post_init__(self) -> None:
         if not 0.0 <= self.gamma <= 1.0:
             raise ValueError(f"loss.gamma={self.gamma}: the discount must be in [0, 1]")
-        if self.reward not in REWARDS:
-            raise ValueError(f"loss.reward={self.reward!r}: expected one of {REWARDS}")
+        if not all(term in REWARDS for term in str(self.reward).split("+")):
+            raise ValueError(f"loss.reward={self.reward!r}: expected one of {REWARDS}, or a sum of them joined by '+'")
         if not self.spread > 0:
             raise ValueError(f"loss.spread={self.spread}: the distance a new touch is paid in full must be > 0")
         if self.advantage not in ("return", "reward"):
