@@ -9,7 +9,8 @@ from hg.sim import PoseRegions, ProbeSimulator, Scene, SensorNoise, sample_episo
 from hg.sim.client import BulletClient, OBJECT_GROUP
 from hg.sim.objects import hg4, load_folder
 from hg.sim.poses import quaternions, rotation_matrices
-from hg.sim.robot import achieved, tool_orientations, z_axes
+from hg.sim import kernels
+from hg.sim.robot import ReachGrid, achieved, tool_orientations, z_axes
 
 DOWN = np.array([[0.0, 0.0, 0.0, 1.0]])  # py=0 -> y=0, no lean, steepest: straight down at (0, 0, 0)
 
@@ -153,6 +154,40 @@ def test_request_mapping_stays_inside_limits():
     tilt = np.degrees(np.arccos(-direction[:, 2]))
     assert (direction[:, 2] < 0).all() and tilt.max() <= 45 + 1e-9 and tilt.max() > 44
     np.testing.assert_allclose(scene.line_request(entry[:, 1]), np.clip(requests[:, 0], -1, 1))  # the inverse
+
+
+def test_compiled_probe_arithmetic_equals_the_numpy_it_replaced():
+    """hg.sim.kernels does numpy's float64 operations in numpy's order: the same to the bit (the angle error to its
+    last bit: numpy's arccos is its own SIMD routine)."""
+    rng, scene = np.random.default_rng(4), Scene()
+    requests = rng.uniform(-1.5, 1.5, (300, 4))
+    entry, u = scene.request_to_probe(requests)
+    py, ux, uy, uz = np.clip(requests, -1.0, 1.0).T
+    scale = math.tan(math.radians(scene.max_tilt_deg)) * 0.5 * (1.0 - uz) / np.maximum(1.0, np.hypot(ux, uy))
+    expected = np.column_stack([ux * scale, uy * scale, -np.ones(len(ux))])
+    np.testing.assert_array_equal(u, expected / np.sqrt((expected * expected).sum(axis=1))[:, None])
+    np.testing.assert_array_equal(entry[:, 1], -0.4 + (py + 1.0) * (0.5 * 0.8))
+    q = np.column_stack([1.0 - u[:, 2], np.zeros(len(u)), u[:, 0], -u[:, 1]])
+    np.testing.assert_array_equal(tool_orientations(u), q / np.sqrt((q * q).sum(axis=1))[:, None])
+    quats = rng.normal(size=(300, 4))
+    x, y, z, w = quats.T
+    np.testing.assert_array_equal(z_axes(quats), np.column_stack([2 * (x * z + w * y), 2 * (y * z - w * x),
+                                                                  1 - 2 * (x * x + y * y)]))
+    tips, axes = entry + rng.normal(0, 0.01, entry.shape), u + rng.normal(0, 0.01, u.shape)
+    errors = kernels.pose_errors(entry, u, tips, axes)
+    np.testing.assert_array_equal(errors[:, 0], np.sqrt(((tips - entry) ** 2).sum(-1)))
+    np.testing.assert_allclose(errors[:, 1], np.degrees(np.arccos(np.clip((axes * u).sum(-1), -1, 1))), rtol=1e-14)
+    grid = ReachGrid()
+    origin, step, top, strides = grid._frame(scene)
+    coords = np.column_stack([entry[:, 1], u[:, :2]])
+    np.testing.assert_array_equal(grid.nearest(scene, entry, u),
+                                  np.clip(np.rint((coords - origin) / step), 0, top).astype(np.int64) @ strides)
+    hit, offsets = rng.random(300) < 0.5, rng.normal(size=(300, 3))
+    ends, ray_from, ray_to = kernels.ray_segments(entry, u, 0.6, offsets)
+    np.testing.assert_array_equal(ends, entry + 0.6 * u)
+    np.testing.assert_array_equal(ray_to, ends + offsets)
+    points = kernels.episode_points(hit, ray_from, offsets, ends)
+    np.testing.assert_array_equal(points, np.column_stack([np.where(hit[:, None], ray_from - offsets, ends), hit]))
 
 
 def test_pose_regions_are_disjoint_and_deterministic():

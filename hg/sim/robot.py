@@ -20,6 +20,7 @@ import pybullet
 
 from hg.atomic import write_atomic
 from hg.sim.client import ROBOT_GROUP, BulletClient
+from hg.sim.kernels import grid_entries, pose_errors, tool_axes, tool_quaternions
 from hg.sim.scene import Scene
 
 TOOL_LINK = "probe_tip"
@@ -44,24 +45,12 @@ def tool_orientations(directions: np.ndarray) -> np.ndarray:
     Straight down is a half turn about x; a tilted u adds the smallest rotation from straight down to u,
     normalise((0, 0, -1) x u, 1 - u_z). Their product, written out, is (1 - u_z, 0, u_x, -u_y) normalised.
     """
-    u = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
-    q = np.empty((len(u), 4))  # filled column by column: this runs at every probe
-    q[:, 0] = 1.0 - u[:, 2]
-    q[:, 1] = 0.0
-    q[:, 2] = u[:, 0]
-    q[:, 3] = -u[:, 1]
-    q /= np.sqrt((q * q).sum(axis=1))[:, None]
-    return q
+    return tool_quaternions(np.ascontiguousarray(directions, dtype=np.float64).reshape(-1, 3))
 
 
 def z_axes(quaternions: np.ndarray) -> np.ndarray:
     """Third column of the rotation matrix of each quaternion (x, y, z, w): the tool's probing axis."""
-    x, y, z, w = np.asarray(quaternions, dtype=np.float64).reshape(-1, 4).T
-    axes = np.empty((len(x), 3))
-    axes[:, 0] = 2 * (x * z + w * y)
-    axes[:, 1] = 2 * (y * z - w * x)
-    axes[:, 2] = 1 - 2 * (x * x + y * y)
-    return axes
+    return tool_axes(np.ascontiguousarray(quaternions, dtype=np.float64).reshape(-1, 4))
 
 
 def load_robot(client: BulletClient, urdf: str | Path, tool_link: str = TOOL_LINK) -> tuple[int, int]:
@@ -113,9 +102,7 @@ class ReachGrid:
 
     def nearest(self, scene: Scene, points: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         """Flat index of the grid entry nearest to each request (entry y, u_x, u_y)."""
-        origin, step, top, strides = self._frame(scene)
-        coords = np.column_stack([points[:, 1], dirs[:, :2]])
-        return np.clip(np.rint((coords - origin) / step), 0, top).astype(np.int64) @ strides
+        return grid_entries(points, dirs, *self._frame(scene))
 
     @functools.lru_cache(maxsize=8)
     def _frame(self, scene: Scene) -> tuple[np.ndarray, ...]:
@@ -240,11 +227,7 @@ class ProbeArm:
 
     def pose_error(self, points: np.ndarray, dirs: np.ndarray, tips: np.ndarray, axes: np.ndarray) -> np.ndarray:
         """(n, 2): position error in metres and angle error in degrees of achieved vs requested poses."""
-        error = np.empty((len(points), 2))
-        gap = tips - points
-        error[:, 0] = np.sqrt((gap * gap).sum(-1))
-        error[:, 1] = np.degrees(np.arccos(np.clip((axes * dirs).sum(-1), -1.0, 1.0)))
-        return error
+        return pose_errors(points, dirs, tips, axes)
 
     def _build_reach_map(self, seed: int, restarts: int = 12) -> tuple[np.ndarray, np.ndarray]:
         """Best IK solution per grid entry: warm starts from the neighbour, the middle pose, random poses."""

@@ -9,6 +9,8 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from hg.sim.kernels import request_frames
+
 Range = tuple[float, float]
 
 
@@ -75,20 +77,9 @@ class Scene:
         if not np.isfinite(requests.sum()):
             bad = np.argwhere(~np.isfinite(requests))[0]
             raise ValueError(f"requests: non-finite value {requests[tuple(bad)]} at episode {bad[0]}, component {bad[1]}")
-        py, ux, uy, uz = np.clip(requests, -1.0, 1.0).T
         lo, hi = self.probe_y
-        n = len(requests)
-        points = np.empty((n, 3))  # built in place, column by column: this runs at every probe
-        points[:, 0] = self.probe_x
-        points[:, 1] = lo + (py + 1.0) * (0.5 * (hi - lo))
-        points[:, 2] = 0.0
-        scale = math.tan(math.radians(self.max_tilt_deg)) * 0.5 * (1.0 - uz) / np.maximum(1.0, np.hypot(ux, uy))
-        direction = np.empty((n, 3))
-        direction[:, 0] = ux * scale
-        direction[:, 1] = uy * scale
-        direction[:, 2] = -1.0
-        direction /= np.sqrt((direction * direction).sum(axis=1))[:, None]
-        return points, direction
+        return request_frames(np.ascontiguousarray(requests), self.probe_x, lo, hi,
+                              math.tan(math.radians(self.max_tilt_deg)))
 
 
 def candidate_requests(places: int, span: float, leans: list[float] | tuple[float, ...],

@@ -15,6 +15,7 @@ import pybullet
 import trimesh
 
 from hg.sim.client import GROUND_GROUP, OBJECT_GROUP, BulletClient
+from hg.sim.kernels import episode_points, ray_segments
 from hg.sim.objects import ObjectSet, load_object_set
 from hg.sim.poses import check_below_ground, quaternions
 from hg.sim.robot import DEFAULT_URDF, TOOL_LINK, ProbeArm
@@ -177,11 +178,9 @@ class ProbeSimulator:
         else:
             start, axis, error = self.arm.reach(entry, direction)
         offset = self.offsets[:n]
-        end = start + self.scene.probe_length * axis
-        hit, position = self.client.cast_rays(start + offset, end + offset)
-        points = np.empty((n, 4))
-        points[:, :3] = np.where(hit[:, None], position - offset, end)
-        points[:, 3] = hit
+        end, ray_from, ray_to = ray_segments(start, axis, self.scene.probe_length, offset)
+        hit, position = self.client.cast_rays(ray_from, ray_to)
+        points = episode_points(hit, position, offset, end)
         if self.noise == NO_NOISE:  # the common case, at every probe: nothing to corrupt, nothing to copy
             return ProbeResult(points, entry, direction, error, points)
         clean = points.copy()
