@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from hg.nets import (
+    CentredPCRN,
     DGCNN,
     PCRN,
     P2CARB,
@@ -66,7 +67,8 @@ def test_p2carb_rejects_unknown_aggregate() -> None:
 
 
 @pytest.mark.parametrize(
-    "make", [lambda: PCRN(width=16, out_dim=32), lambda: LSTMEncoder(hidden=32)], ids=["PCRN", "LSTM"]
+    "make", [lambda: PCRN(width=16, out_dim=32), lambda: CentredPCRN(width=16, out_dim=32),
+             lambda: LSTMEncoder(hidden=32)], ids=["PCRN", "CentredPCRN", "LSTM"]
 )
 def test_encoders_causal(make) -> None:
     encoder = make()
@@ -279,6 +281,15 @@ def test_touch_set_causal_and_blind_to_where_the_object_lies() -> None:
     assert torch.equal(clf(torch.randn(B, N, 8), points), logits)  # it reads the points alone
 
 
+def test_centred_pcrn_reads_its_points_wherever_the_object_lies_once_touched() -> None:
+    encoder = CentredPCRN(width=16, out_dim=32)
+    requests, points = torch.randn(B, N, 4), touched_points([False, True, False, True, True, False])
+    moved = points.clone()
+    moved[..., :3] += torch.tensor([0.3, -0.2, 0.1])
+    differs = (encoder(requests, moved) - encoder(requests, points)).abs().amax(dim=(0, 2)) > 1e-5
+    assert differs.tolist() == [True] + [False] * (N - 1)  # the first probe missed: nothing to read it around yet
+
+
 def test_touch_set_reads_where_probes_missed_from_their_probe_on() -> None:
     """A miss reports where its ray ended, which says where the object is not."""
     clf = touch_set()
@@ -341,7 +352,8 @@ def test_dgcnn_reads_a_cloud_of_no_more_than_k_points_as_one_neighbourhood() -> 
 
 
 @pytest.mark.parametrize(
-    "make", [lambda: PCRN(width=16, out_dim=32), lambda: LSTMEncoder(hidden=32)], ids=["PCRN", "LSTM"]
+    "make", [lambda: PCRN(width=16, out_dim=32), lambda: CentredPCRN(width=16, out_dim=32),
+             lambda: LSTMEncoder(hidden=32)], ids=["PCRN", "CentredPCRN", "LSTM"]
 )
 def test_encoders_step_by_step_equal_forward(make) -> None:
     """The rollout encodes one probe at a time; evaluate() encodes whole sequences: they must agree."""

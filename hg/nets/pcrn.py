@@ -5,6 +5,7 @@ from torch import Tensor, nn
 
 from hg.nets.mlp import mlp
 from hg.nets.p2carb import P2CARB
+from hg.nets.pointcloud import prefix_touch_centres
 
 
 class PCRN(nn.Module):
@@ -29,3 +30,35 @@ class PCRN(nn.Module):
         r, requests_memory = self.requests.step(request, requests_memory)
         p, points_memory = self.points.step(point, points_memory)
         return self.fuse(torch.cat([r, p], -1)), (requests_memory, points_memory)
+
+
+class CentredPCRN(PCRN):
+    """Beyond the paper: PCRN whose point block reads each prefix's points relative to the mean of its touches (times
+    `scale`), as PointNet centres its clouds. Where the object lies is no class cue, its shape is; PCRN reads points
+    in the episode frame and learns that invariance slowly (docs/findings.md). Row k encodes probes 1..k around
+    prefix k's own centre: N encodings of the point sequence instead of one."""
+
+    def __init__(self, request_dim: int = 4, point_dim: int = 4, width: int = 128, out_dim: int = 256,
+                 scale: float = 5.0) -> None:
+        super().__init__(request_dim, point_dim, width, out_dim)
+        self.scale = scale  # relative coordinates of a ~0.2 m object (x point_scale) to about unit size
+
+    def forward(self, requests: Tensor, points: Tensor) -> Tensor:
+        return self.fuse(torch.cat([self.requests(requests), self.point_rows(points)], -1))
+
+    def point_rows(self, points: Tensor) -> Tensor:
+        """(B, N, 4) -> (B, N, width): row k is the point block over probes 1..k around prefix k's centre (the
+        block is causal, so probes after k in the same sequence are not read)."""
+        b, n = points.shape[:2]
+        centres = prefix_touch_centres(points)[0]  # (B, K, 3)
+        xyz = (points[:, None, :, :3] - centres[:, :, None]) * self.scale  # (B, K, J, 3): probe j around centre k
+        prefixes = torch.cat([xyz, points[:, None, :, 3:].expand(-1, n, -1, -1)], -1)
+        encoded = self.points(prefixes.flatten(0, 1)).view(b, n, n, -1)
+        return encoded.diagonal(dim1=1, dim2=2).transpose(1, 2)
+
+    def step(self, request: Tensor, point: Tensor, memory: tuple | None) -> tuple[Tensor, tuple]:
+        """One more probe: the point block re-reads the probes so far around their new centre."""
+        requests_memory, seen = memory if memory is not None else (None, point[:, None, :][:, :0])
+        r, requests_memory = self.requests.step(request, requests_memory)
+        seen = torch.cat([seen, point[:, None]], 1)
+        return self.fuse(torch.cat([r, self.point_rows(seen)[:, -1]], -1)), (requests_memory, seen)

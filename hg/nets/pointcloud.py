@@ -80,6 +80,17 @@ class DGCNN(nn.Module):
         return self.head(torch.cat([x.amax(-1), x.mean(-1)], 1))
 
 
+def prefix_touch_centres(points: Tensor) -> tuple[Tensor, Tensor]:
+    """points (B, N, 4) -> the mean of the touched points among probes 1..k+1 at every k (B, N, 3), 0 before the
+    first touch, and how many touched (B, N, 1): the centre a prefix's points are read around."""
+    n = points.shape[1]
+    touched = (points[..., 3] > 0.5).to(points.dtype)
+    prefix = torch.ones(n, n, dtype=points.dtype, device=points.device).tril()  # [k, j]: probe j <= k
+    mask = prefix * touched[:, None, :]  # (B, K, J): probe j touched and is in prefix k
+    count = mask.sum(-1, keepdim=True)
+    return (mask @ points[..., :3]) / count.clamp(min=1), count
+
+
 class TouchSetClassifier(nn.Module):
     """Beyond the paper: a PointNet over every probe so far, its points taken relative to the mean of the touched
     ones. Where the object lies is no class cue, its shape is; PCRN reads points in the episode frame and learns
@@ -121,10 +132,7 @@ class TouchSetClassifier(nn.Module):
         most of a training step's time in the touch-set rows."""
         b, n = points.shape[:2]
         xyz, touched = points[..., :3], (points[..., 3] > 0.5).to(points.dtype)
-        prefix = torch.ones(n, n, dtype=points.dtype, device=points.device).tril()  # [k, j]: probe j <= k
-        mask = prefix * touched[:, None, :]  # (B, K, J): probe j touched and is in prefix k
-        count = mask.sum(-1, keepdim=True)  # (B, K, 1)
-        centre = (mask @ xyz) / count.clamp(min=1)  # (B, K, 3)
+        centre, count = prefix_touch_centres(points)
         if last_only:  # the pairs of the last prefix
             j = torch.arange(n, device=points.device)
             k = torch.full_like(j, n - 1)
