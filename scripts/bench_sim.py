@@ -1,10 +1,13 @@
 """Probes per second of the simulator (B episodes x N probes) against the bare PyBullet calls for the same work.
 
-Bare arm cost per probe: one calculateInverseKinematics, the joint resets (one resetJointStatesMultiDof, as the
-simulator does), getLinkState for the achieved tool pose, and the probe's share of one rayTestBatch per step.
+Bare arm cost per probe: one calculateInverseKinematics, then what a PyBullet program calls to read the pose the
+arm achieved (one resetJointStatesMultiDof, one getLinkState), and the probe's share of one rayTestBatch per step.
+The simulator reads that pose from the URDF chain's own forward kinematics instead (hg.sim.kernels.tool_frames,
+checked against getLinkState when the arm is built), so it can beat this bare figure; `arm_floor_ratio` times it
+against the IK calls and rays alone, which nothing that solves IK with PyBullet can go under.
 Bare ideal cost: the rayTestBatch alone. Both also place each batch's objects with the same
-resetBasePositionAndOrientation calls as `ProbeSimulator.reset` (so that the first ray batch after a reset pays
-for the moved objects in both timings).
+resetBasePositionAndOrientation calls as `ProbeSimulator.reset`, from the same world (so that the first ray batch
+after a reset pays for the moved objects in both timings).
 Timings alternate episode batch by episode batch (simulator, bare, simulator, bare, ...), so that a change in the
 machine's speed reaches both alike; each of `--repeats` passes over the batches gives one ratio, and the figure is
 their median, with their spread (min, max).
@@ -54,8 +57,9 @@ def prepare_bare(sim: ProbeSimulator, work: list[tuple], arm: bool) -> list[tupl
     return prepared
 
 
-def bare_batch(sim: ProbeSimulator, moves: list[tuple], steps: list[tuple]) -> None:
-    """One episode batch as bare PyBullet calls: the same calls `ProbeSimulator.reset` and `probe` issue."""
+def bare_batch(sim: ProbeSimulator, moves: list[tuple], steps: list[tuple], read_pose: bool = True) -> None:
+    """One episode batch as bare PyBullet calls: the object moves, per probe the IK call and (read_pose) the calls
+    that read the achieved tool pose, per step the ray batch."""
     cid = sim.client.id
     for body, position, orientation in moves:
         pybullet.resetBasePositionAndOrientation(body, position, orientation, physicsClientId=cid)
@@ -66,16 +70,18 @@ def bare_batch(sim: ProbeSimulator, moves: list[tuple], steps: list[tuple]) -> N
                 q = pybullet.calculateInverseKinematics(
                     body, tool, point, orient, currentPositions=warm, jointDamping=damping,
                     maxNumIterations=sim.arm.ik_iterations, residualThreshold=1e-6, physicsClientId=cid)
-                pybullet.resetJointStatesMultiDof(body, joints, [[v] for v in q], physicsClientId=cid)
-                pybullet.getLinkState(body, tool, computeForwardKinematics=True, physicsClientId=cid)
+                if read_pose:
+                    pybullet.resetJointStatesMultiDof(body, joints, [[v] for v in q], physicsClientId=cid)
+                    pybullet.getLinkState(body, tool, computeForwardKinematics=True, physicsClientId=cid)
         pybullet.rayTestBatch(rayFromPositions=starts, rayToPositions=ends, collisionFilterMask=OBJECT_GROUP,
                               physicsClientId=cid)
 
 
-def time_pair(sim: ProbeSimulator, work: list[tuple], prepared: list[tuple]) -> tuple[float, float]:
-    """Seconds of the simulator and of the bare calls over all episode batches, alternating batch by batch, so that
-    the machine's speed changes reach both alike."""
-    simulator = bare = 0.0
+def time_pair(sim: ProbeSimulator, work: list[tuple], prepared: list[tuple],
+              floor: bool = False) -> tuple[float, float, float]:
+    """Seconds of the simulator, of the bare calls and (floor) of the bare calls without reading the achieved pose,
+    over all episode batches, alternating batch by batch, so that the machine's speed changes reach all alike."""
+    simulator = bare = bare_floor = 0.0
     previous = work[-1]
     for (labels, poses, requests), (moves, steps) in zip(work, prepared):
         t0 = time.perf_counter()
@@ -85,13 +91,17 @@ def time_pair(sim: ProbeSimulator, work: list[tuple], prepared: list[tuple]) -> 
         simulator += time.perf_counter() - t0
         # the bare calls start from the world the simulator found: their object moves are real moves (moving an
         # object where it already is costs PyBullet a fifth as much), and the first ray batch pays for them alike
-        ProbeSimulator.reset(sim, *previous[:2])  # the class's method: untimed by breakdown() too
-        t1 = time.perf_counter()
-        bare_batch(sim, moves, steps)
-        bare += time.perf_counter() - t1
-        ProbeSimulator.reset(sim, labels, poses)  # the simulator's record of what each slot holds, back in step with the world
+        for read_pose in (True, False) if floor else (True,):
+            ProbeSimulator.reset(sim, *previous[:2])  # the class's method: untimed by breakdown() too
+            t1 = time.perf_counter()
+            bare_batch(sim, moves, steps, read_pose)
+            if read_pose:
+                bare += time.perf_counter() - t1
+            else:
+                bare_floor += time.perf_counter() - t1
+        ProbeSimulator.reset(sim, labels, poses)  # the simulator's record of what each slot holds, back in step
         previous = (labels, poses, requests)
-    return simulator, bare
+    return simulator, bare, bare_floor
 
 
 def breakdown(sim: ProbeSimulator, work: list[tuple], prepared: list[tuple]) -> dict[str, float]:
@@ -136,7 +146,7 @@ def main() -> None:
             prepared = prepare_bare(sim, work, mode == "arm")
             n = n_batches * args.probes * args.batch_size
             time_pair(sim, work, prepared)  # one untimed pass: caches and allocations settle
-            pairs = np.array([time_pair(sim, work, prepared) for _ in range(args.repeats)])
+            pairs = np.array([time_pair(sim, work, prepared, floor=mode == "arm") for _ in range(args.repeats)])
             if args.breakdown:
                 figures[f"{mode}_us_per_step"] = breakdown(sim, work, prepared)
                 print(f"{mode:5s}: us per probe step {figures[f'{mode}_us_per_step']}")
@@ -145,9 +155,14 @@ def main() -> None:
                         f"bare_{mode}_probes_per_s": round(n / float(np.median(pairs[:, 1])), 1),
                         f"{mode}_ratio": round(float(np.median(ratios)), 3),
                         f"{mode}_ratio_spread": [round(float(ratios.min()), 3), round(float(ratios.max()), 3)]})
+        if mode == "arm":
+            floor = pairs[:, 2] / pairs[:, 0]
+            figures.update(arm_floor_ratio=round(float(np.median(floor)), 3),
+                           arm_floor_ratio_spread=[round(float(floor.min()), 3), round(float(floor.max()), 3)])
         print(f"{mode:5s}: {figures[f'{mode}_probes_per_s']:10.0f} probes/s, bare PyBullet "
               f"{figures[f'bare_{mode}_probes_per_s']:10.0f} probes/s, ratio {figures[f'{mode}_ratio']:.2f} "
-              f"(median of {args.repeats} pairs, spread {ratios.min():.2f}-{ratios.max():.2f})")
+              f"(median of {args.repeats} pairs, spread {ratios.min():.2f}-{ratios.max():.2f})"
+              + (f"; against the IK and ray calls alone {figures['arm_floor_ratio']:.2f}" if mode == "arm" else ""))
     figures.update(batch_size=args.batch_size, probes=args.probes, repeats=args.repeats, host=hardware())
     print(json.dumps(figures))
 

@@ -12,7 +12,8 @@ import trimesh
 import yourdfpy
 
 from hg.sim.client import BulletClient
-from hg.sim.robot import DEFAULT_URDF, TOOL_LINK, load_robot
+from hg.sim.kernels import tool_frames
+from hg.sim.robot import DEFAULT_URDF, TOOL_LINK, kinematic_chain, load_robot
 from hg.sim.scene import Scene
 from hg.sim.urdf_tools import (BasePlacement, attach_probe, kinematic_copy, load_urdf, pick_tool_link, resolve_urdf,
                                search_base, set_base, swap_robot)
@@ -88,6 +89,20 @@ def test_probe_tip_fk_agrees_between_yourdfpy_and_pybullet(urdf):
             axis = np.array(client.getMatrixFromQuaternion(state[5])).reshape(3, 3)[:, 2]
             assert np.linalg.norm(np.array(state[4]) - expected[:3, 3]) <= 1e-4
             assert np.linalg.norm(axis - expected[:3, 2]) <= 1e-4
+            # the simulator's own chain (ProbeArm.place reads achieved poses from it): PyBullet's to 1e-6
+            movable = [n for n, j in index.items() if client.getJointInfo(body, j)[2] in (0, 1)]  # revolute, prismatic
+            chain = kinematic_chain(urdf, TOOL_LINK, sorted(movable, key=index.get))
+            tips, axes = tool_frames(np.array([[q[n] for n in sorted(movable, key=index.get)]]), *chain)
+            assert np.abs(tips[0] - state[4]).max() <= 1e-6 and np.abs(axes[0] - axis).max() <= 1e-6
+
+
+def test_a_tool_link_behind_a_joint_an_arm_cannot_have_is_refused(tmp_path):
+    path = tmp_path / "planar.urdf"
+    link = '<link name="{}"><inertial><mass value="1"/><inertia ixx="1" ixy="0" ixz="0" iyy="1" iyz="0" izz="1"/></inertial></link>'
+    path.write_text(f'<robot name="p">{link.format("base")}{link.format(TOOL_LINK)}<joint name="slide" type="planar">'
+                    f'<parent link="base"/><child link="{TOOL_LINK}"/><axis xyz="0 0 1"/></joint></robot>')
+    with pytest.raises(ValueError, match=r"planar.urdf: the chain to 'probe_tip' has joints an arm cannot have: 'slide'"):
+        kinematic_chain(path, TOOL_LINK, [])
 
 
 @pytest.mark.parametrize("urdf", COMMITTED[:2], ids=lambda p: p.stem)

@@ -101,3 +101,48 @@ def episode_points(hit: np.ndarray, positions: np.ndarray, offsets: np.ndarray, 
             points[i, j] = positions[i, j] - offsets[i, j] if hit[i] else ends[i, j]
         points[i, 3] = 1.0 if hit[i] else 0.0
     return points
+
+
+FIXED, REVOLUTE, PRISMATIC = 0, 1, 2  # the kinds of a chain joint's motion, tool_frames
+
+
+@numba.njit(cache=True)
+def _compose(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """out[:3] = (a @ b)[:3] for rigid transforms (4, 4) whose last row is (0, 0, 0, 1); out must not be a or b."""
+    for r in range(3):
+        for c in range(4):
+            out[r, c] = a[r, 0] * b[0, c] + a[r, 1] * b[1, c] + a[r, 2] * b[2, c] + (a[r, 3] if c == 3 else 0.0)
+
+
+@numba.njit(cache=True)
+def tool_frames(qs: np.ndarray, origins: np.ndarray, kinds: np.ndarray, axes: np.ndarray,
+                columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Forward kinematics of the URDF chain from the base to the tool link for joint positions qs (n, J): the tool
+    link's position and +z axis (n, 3) each. Joint k of the chain: its origin (4, 4) in the parent link's frame, its
+    kind, unit axis (3,) in its own frame and column of qs (-1 when fixed). A few 4x4 products per joint, where
+    PyBullet's resetJointStatesMultiDof and getLinkState cost some 5 us a probe."""
+    n = qs.shape[0]
+    tips, tool_axes = np.empty((n, 3)), np.empty((n, 3))
+    frame, scratch, motion = np.eye(4), np.eye(4), np.eye(4)
+    for i in range(n):
+        frame[:] = np.eye(4)
+        for k in range(kinds.shape[0]):
+            _compose(frame, origins[k], scratch)
+            frame[:] = scratch
+            if kinds[k] == FIXED:
+                continue
+            q, x, y, z = qs[i, columns[k]], axes[k, 0], axes[k, 1], axes[k, 2]
+            motion[:] = np.eye(4)
+            if kinds[k] == REVOLUTE:  # Rodrigues' rotation by q about the axis
+                c, s = math.cos(q), math.sin(q)
+                t = 1.0 - c
+                motion[0, 0], motion[0, 1], motion[0, 2] = c + x * x * t, x * y * t - z * s, x * z * t + y * s
+                motion[1, 0], motion[1, 1], motion[1, 2] = y * x * t + z * s, c + y * y * t, y * z * t - x * s
+                motion[2, 0], motion[2, 1], motion[2, 2] = z * x * t - y * s, z * y * t + x * s, c + z * z * t
+            else:  # a translation by q along the axis
+                motion[0, 3], motion[1, 3], motion[2, 3] = x * q, y * q, z * q
+            _compose(frame, motion, scratch)
+            frame[:] = scratch
+        tips[i] = frame[:3, 3]
+        tool_axes[i] = frame[:3, 2]
+    return tips, tool_axes

@@ -20,7 +20,7 @@ import pybullet
 
 from hg.atomic import write_atomic
 from hg.sim.client import ROBOT_GROUP, BulletClient
-from hg.sim.kernels import grid_entries, pose_errors, tool_axes, tool_quaternions
+from hg.sim.kernels import FIXED, PRISMATIC, REVOLUTE, grid_entries, pose_errors, tool_axes, tool_frames, tool_quaternions
 from hg.sim.scene import Scene
 
 TOOL_LINK = "probe_tip"
@@ -75,6 +75,26 @@ def load_robot(client: BulletClient, urdf: str | Path, tool_link: str = TOOL_LIN
     for link in [-1, *links.values()]:
         client.setCollisionFilterGroupMask(body, link, ROBOT_GROUP, 0)
     return body, links[tool_link]
+
+
+JOINT_KINDS = {"fixed": FIXED, "revolute": REVOLUTE, "continuous": REVOLUTE, "prismatic": PRISMATIC}
+
+
+def kinematic_chain(urdf: Path, tool_link: str, joint_names: list[str]) -> tuple[np.ndarray, ...]:
+    """The URDF's joints from the base down to the tool link as kernels.tool_frames takes them: their origins (K, 4,
+    4), kinds, unit axes (K, 3) and each movable joint's column among `joint_names` (the order of PyBullet's IK
+    solution; -1 for a fixed joint)."""
+    from hg.sim.urdf_tools import chain_joints, load_urdf  # here: urdf_tools builds on this module
+    chain = chain_joints(load_urdf(urdf).robot, tool_link)
+    unknown = [f"'{j.name}' ({j.type})" for j in chain if j.type not in JOINT_KINDS]
+    if unknown:
+        raise ValueError(f"robot URDF {urdf}: the chain to '{tool_link}' has joints an arm cannot have: {', '.join(unknown)}")
+    origins = np.array([np.eye(4) if j.origin is None else j.origin for j in chain], dtype=np.float64).reshape(-1, 4, 4)
+    axes = np.array([(0.0, 0.0, 1.0) if j.axis is None else j.axis for j in chain], dtype=np.float64).reshape(-1, 3)
+    axes /= np.maximum(np.linalg.norm(axes, axis=1, keepdims=True), 1e-12)
+    kinds = np.array([JOINT_KINDS[j.type] for j in chain], dtype=np.int64)
+    columns = np.array([joint_names.index(j.name) if j.type != "fixed" else -1 for j in chain], dtype=np.int64)
+    return origins, kinds, axes, columns
 
 
 @dataclass(frozen=True)
@@ -132,6 +152,8 @@ class ProbeArm:
         self.upper = np.where(unlimited, 2 * math.pi, upper)
         self.ik_iterations = ik_iterations
         self.damping = [ik_damping] * len(self.joints)  # PyBullet's default damping converges slowly
+        self.chain = kinematic_chain(self.urdf, tool_link, self.joint_names)
+        self._check_kinematics()
         self.grid_targets = grid.targets(scene)
         self._neighbour_cache: dict[tuple[int, int], np.ndarray] = {}
         self.key = self._cache_key(tool_link)
@@ -143,41 +165,43 @@ class ProbeArm:
 
     def place(self, points: np.ndarray, orientations: np.ndarray, starts: np.ndarray,
               iterations: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """One IK call per target from its warm start, joints reset to the solution (no physics step).
+        """One IK call per target from its warm start; solutions outside the joint limits are clipped into them.
 
-        Returns joint positions, achieved tool positions and quaternions (the URDF link frame, not the inertial
-        one). Solutions outside the joint limits are clipped afterwards, in the rare slow path: this loop is the
-        probe's hot path, so it only passes plain lists to PyBullet.
+        Returns joint positions, achieved tool positions and probing axes (+z of the URDF tool link frame), the
+        poses from the URDF chain's forward kinematics (checked against PyBullet's when the arm is built), so the
+        probe's hot path is one PyBullet call per target. The arm is left standing at the last target's solution
+        (for pictures). PyBullet's IK reads its start from `currentPositions` alone, not from the arm's joints.
         """
-        cid, body, tool, joints, damping = self.client.id, self.body, self.tool, self.joints, self.damping
-        ik, reset, link_state = (pybullet.calculateInverseKinematics, pybullet.resetJointStatesMultiDof,
-                                 pybullet.getLinkState)
-        flat = []  # per target its joint positions, then the tool's position and quaternion: one array at the end
+        cid, body, tool, damping, ik = self.client.id, self.body, self.tool, self.damping, pybullet.calculateInverseKinematics
+        flat = []
         for point, orientation, start in zip(points.tolist(), orientations.tolist(), starts.tolist()):
-            q = ik(body, tool, point, orientation, currentPositions=start, jointDamping=damping,
-                   maxNumIterations=iterations, residualThreshold=1e-6, physicsClientId=cid)
-            reset(body, joints, [[v] for v in q], physicsClientId=cid)
-            state = link_state(body, tool, computeForwardKinematics=True, physicsClientId=cid)
-            flat += q
-            flat += state[4]
-            flat += state[5]
-        n_joints = len(joints)
-        rows = np.array(flat).reshape(len(points), n_joints + 7)
-        qs, tips, quats = rows[:, :n_joints], rows[:, n_joints:n_joints + 3], rows[:, n_joints + 3:]
-        for i in np.flatnonzero(((qs < self.lower) | (qs > self.upper)).any(axis=1)):
-            qs[i] = np.clip(qs[i], self.lower, self.upper)
-            self.set_joints(qs[i])
-            state = self.client.getLinkState(body, tool, computeForwardKinematics=True)
-            tips[i], quats[i] = state[4], state[5]
-        return qs, tips, quats
+            flat += ik(body, tool, point, orientation, currentPositions=start, jointDamping=damping,
+                       maxNumIterations=iterations, residualThreshold=1e-6, physicsClientId=cid)
+        qs = np.clip(np.array(flat).reshape(len(points), len(self.joints)), self.lower, self.upper)
+        tips, axes = tool_frames(qs, *self.chain)
+        self.set_joints(qs[-1])
+        return qs, tips, axes
+
+    def _check_kinematics(self, samples: int = 8) -> None:
+        """The chain's forward kinematics against PyBullet's at random joint positions: a URDF the chain reads
+        otherwise than PyBullet does is refused here, not found later in the probes."""
+        low, high = np.maximum(self.lower, -math.pi), np.minimum(self.upper, math.pi)
+        qs = np.random.default_rng(0).uniform(low, high, (samples, len(self.joints)))
+        tips, axes = tool_frames(qs, *self.chain)
+        for q, tip, axis in zip(qs, tips, axes):
+            self.set_joints(q)
+            state = self.client.getLinkState(self.body, self.tool, computeForwardKinematics=True)
+            gap = max(np.abs(tip - state[4]).max(), np.abs(axis - z_axes(np.array(state[5]))[0]).max())
+            if gap > 1e-5:
+                raise ValueError(f"robot URDF {self.urdf}: the tool link's pose from the URDF's joint chain is {gap:.2g} "
+                                 f"off PyBullet's at joint positions {np.round(q, 3).tolist()}")
 
     def reach(self, points: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Move the tool to each (P, u) in turn; return achieved tip positions and +z axes (n, 3) each, and
         their pose errors (n, 2) as `pose_error` gives them."""
         orients = tool_orientations(dirs)
         starts = self.map_q[self.grid.nearest(self.scene, points, dirs)]
-        _, tips, quats = self.place(points, orients, starts, self.ik_iterations)
-        axes = z_axes(quats)
+        _, tips, axes = self.place(points, orients, starts, self.ik_iterations)
         errors = self.pose_error(points, dirs, tips, axes)
         for i in np.flatnonzero(~achieved(errors)):
             tips[i], axes[i] = self._retry(points[i], dirs[i], orients[i])
@@ -189,8 +213,8 @@ class ProbeArm:
         """Rare slow path: warm starts from the reach-map entries next to the nearest one, keeping the best pose."""
         best = None
         for entry in self._neighbours(int(self.grid.nearest(self.scene, point[None], direction[None])[0]), tries):
-            _, tip, quat = self.place(point[None], orientation[None], self.map_q[entry][None], self.ik_iterations)
-            tip, axis = tip[0], z_axes(quat)[0]
+            _, tip, axis = self.place(point[None], orientation[None], self.map_q[entry][None], self.ik_iterations)
+            tip, axis = tip[0], axis[0]
             err = self.pose_error(point[None], direction[None], tip[None], axis[None])[0]
             if best is None or err[0] + 1e-3 * err[1] < best[0]:
                 best = (err[0] + 1e-3 * err[1], tip, axis)
@@ -243,8 +267,8 @@ class ProbeArm:
             starts = [previous, middle] + [rng.uniform(np.maximum(self.lower, -math.pi),
                                                        np.minimum(self.upper, math.pi)) for _ in range(restarts)]
             for start in starts:
-                q, tip, quat = self.place(points[i:i + 1], orients[i:i + 1], start[None], 200)
-                err = self.pose_error(points[i:i + 1], dirs[i:i + 1], tip, z_axes(quat))[0]
+                q, tip, axis = self.place(points[i:i + 1], orients[i:i + 1], start[None], 200)
+                err = self.pose_error(points[i:i + 1], dirs[i:i + 1], tip, axis)[0]
                 if best_err is None or err[0] / POSITION_TOLERANCE + err[1] / ANGLE_TOLERANCE_DEG < \
                         best_err[0] / POSITION_TOLERANCE + best_err[1] / ANGLE_TOLERANCE_DEG:
                     best, best_err = q[0], err
