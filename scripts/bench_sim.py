@@ -90,7 +90,7 @@ def time_pair(sim: ProbeSimulator, work: list[tuple], prepared: list[tuple],
             sim.probe(step)
         simulator += time.perf_counter() - t0
         # the bare calls start from the world the simulator found: their object moves are real moves (moving an
-        # object where it already is costs PyBullet a fifth as much), and the first ray batch pays for them alike
+        # object where it already is costs PyBullet less), and the first ray batch pays for them alike
         for read_pose in (True, False) if floor else (True,):
             ProbeSimulator.reset(sim, *previous[:2])  # the class's method: untimed by breakdown() too
             t1 = time.perf_counter()
