@@ -8,10 +8,11 @@ against the IK calls and rays alone, which nothing that solves IK with PyBullet 
 Bare ideal cost: the rayTestBatch alone. Both also place each batch's objects with the same
 resetBasePositionAndOrientation calls as `ProbeSimulator.reset`, from the same world (so that the first ray batch
 after a reset pays for the moved objects in both timings).
-Timings alternate episode batch by episode batch (simulator, bare, simulator, bare, ...), so that a change in the
-machine's speed reaches both alike; each of `--repeats` passes over the batches gives one ratio, and the figure is
-their median, with their spread (min, max).
-Last line: JSON with, per mode, probes/s of both (medians), `<mode>_ratio` and `<mode>_ratio_spread`.
+Timings alternate episode batch by episode batch (simulator, bare[, IK and rays alone], simulator, ...), so that a
+change in the machine's speed reaches all alike; each of `--repeats` passes over the batches gives one ratio, and the
+figure is their median, with their spread (min, max).
+Last line: JSON with, per mode, probes/s of both (medians), `<mode>_ratio` and `<mode>_ratio_spread`, and
+`arm_floor_ratio` with its spread.
 """
 from __future__ import annotations
 

@@ -5,11 +5,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from hg.sim import PoseRegions, ProbeSimulator, Scene, SensorNoise, sample_episodes
+from hg.sim import PoseRegions, ProbeSimulator, Scene, SensorNoise, kernels, sample_episodes
 from hg.sim.client import BulletClient, OBJECT_GROUP
 from hg.sim.objects import hg4, load_folder
 from hg.sim.poses import quaternions, rotation_matrices
-from hg.sim import kernels
 from hg.sim.robot import ReachGrid, achieved, tool_orientations, z_axes
 
 DOWN = np.array([[0.0, 0.0, 0.0, 1.0]])  # py=0 -> y=0, no lean, steepest: straight down at (0, 0, 0)

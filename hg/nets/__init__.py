@@ -8,7 +8,7 @@ from hg.nets.lstm import LSTMEncoder
 from hg.nets.mirror import left_of_line, reflect
 from hg.nets.mlp import cumulative_mean, mlp
 from hg.nets.p2carb import P2CARB
-from hg.nets.pcrn import PCRN, CentredPCRN
+from hg.nets.pcrn import CentredPCRN, PCRN
 from hg.nets.pointcloud import DGCNN, PointNet, TouchSetClassifier
 
 __all__ = [

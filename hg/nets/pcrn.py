@@ -41,24 +41,28 @@ class CentredPCRN(PCRN):
     def __init__(self, request_dim: int = 4, point_dim: int = 4, width: int = 128, out_dim: int = 256,
                  scale: float = 5.0) -> None:
         super().__init__(request_dim, point_dim, width, out_dim)
-        self.scale = scale  # relative coordinates of a ~0.2 m object (x point_scale) to about unit size
+        self.scale = scale  # as TouchSetClassifier's: relative coordinates of an object to about unit size
 
     def forward(self, requests: Tensor, points: Tensor) -> Tensor:
         return self.fuse(torch.cat([self.requests(requests), self.point_rows(points)], -1))
+
+    def around(self, points: Tensor, centres: Tensor) -> Tensor:
+        """points (..., J, 4) relative to centres (..., 1, 3), scaled; T unchanged."""
+        return torch.cat([(points[..., :3] - centres) * self.scale, points[..., 3:]], -1)
 
     def point_rows(self, points: Tensor) -> Tensor:
         """(B, N, 4) -> (B, N, width): row k is the point block over probes 1..k around prefix k's centre (the
         block is causal, so probes after k in the same sequence are not read)."""
         b, n = points.shape[:2]
         centres = prefix_touch_centres(points)[0]  # (B, K, 3)
-        xyz = (points[:, None, :, :3] - centres[:, :, None]) * self.scale  # (B, K, J, 3): probe j around centre k
-        prefixes = torch.cat([xyz, points[:, None, :, 3:].expand(-1, n, -1, -1)], -1)
+        prefixes = self.around(points[:, None].expand(-1, n, -1, -1), centres[:, :, None])  # (B, K, J, 4)
         encoded = self.points(prefixes.flatten(0, 1)).view(b, n, n, -1)
         return encoded.diagonal(dim1=1, dim2=2).transpose(1, 2)
 
     def step(self, request: Tensor, point: Tensor, memory: tuple | None) -> tuple[Tensor, tuple]:
-        """One more probe: the point block re-reads the probes so far around their new centre."""
-        requests_memory, seen = memory if memory is not None else (None, point[:, None, :][:, :0])
+        """One more probe: the point block re-reads the probes so far around their new centre (one prefix)."""
+        requests_memory, seen = memory if memory is not None else (None, point[:, None, :][:, :0])  # no probe yet
         r, requests_memory = self.requests.step(request, requests_memory)
         seen = torch.cat([seen, point[:, None]], 1)
-        return self.fuse(torch.cat([r, self.point_rows(seen)[:, -1]], -1)), (requests_memory, seen)
+        last = self.points(self.around(seen, prefix_touch_centres(seen)[0][:, -1:]))[:, -1]
+        return self.fuse(torch.cat([r, last], -1)), (requests_memory, seen)

@@ -20,12 +20,13 @@ import pybullet
 
 from hg.atomic import write_atomic
 from hg.sim.client import ROBOT_GROUP, BulletClient
-from hg.sim.kernels import FIXED, PRISMATIC, REVOLUTE, grid_entries, pose_errors, tool_axes, tool_frames, tool_quaternions
+from hg.sim.kernels import (FIXED, PRISMATIC, REVOLUTE, grid_entries, pose_errors, tool_axes, tool_frames,
+                            tool_quaternions)
 from hg.sim.scene import Scene
 
 TOOL_LINK = "probe_tip"
 DEFAULT_URDF = Path(__file__).resolve().parents[2] / "urdf" / "hg_probe_arm.urdf"
-REACH_MAP_VERSION = 1
+REACH_MAP_VERSION = 2  # 2: pose errors from the chain's forward kinematics, not float32 link quaternions
 POSITION_TOLERANCE = 0.005  # m: a probe counts as achieved within 5 mm ...
 ANGLE_TOLERANCE_DEG = 3.0  # ... and 3 degrees
 
@@ -88,13 +89,18 @@ def kinematic_chain(urdf: Path, tool_link: str, joint_names: list[str]) -> tuple
     chain = chain_joints(load_urdf(urdf).robot, tool_link)
     unknown = [f"'{j.name}' ({j.type})" for j in chain if j.type not in JOINT_KINDS]
     if unknown:
-        raise ValueError(f"robot URDF {urdf}: the chain to '{tool_link}' has joints an arm cannot have: {', '.join(unknown)}")
-    origins = np.array([np.eye(4) if j.origin is None else j.origin for j in chain], dtype=np.float64).reshape(-1, 4, 4)
-    axes = np.array([(0.0, 0.0, 1.0) if j.axis is None else j.axis for j in chain], dtype=np.float64).reshape(-1, 3)
+        raise ValueError(f"robot URDF {urdf}: the chain to '{tool_link}' has joints an arm cannot have: "
+                         f"{', '.join(unknown)}")
+    unmoved = [j.name for j in chain if j.type != "fixed" and j.name not in joint_names]
+    if unmoved:
+        raise ValueError(f"robot URDF {urdf}: chain joints {unmoved} are not among the joints PyBullet moves "
+                         f"({joint_names})")
+    origins = np.array([np.eye(4) if j.origin is None else j.origin for j in chain], dtype=np.float64)
+    axes = np.array([(1.0, 0.0, 0.0) if j.axis is None else j.axis for j in chain], dtype=np.float64)  # URDF default
     axes /= np.maximum(np.linalg.norm(axes, axis=1, keepdims=True), 1e-12)
     kinds = np.array([JOINT_KINDS[j.type] for j in chain], dtype=np.int64)
     columns = np.array([joint_names.index(j.name) if j.type != "fixed" else -1 for j in chain], dtype=np.int64)
-    return origins, kinds, axes, columns
+    return origins.reshape(-1, 4, 4), kinds, axes.reshape(-1, 3), columns
 
 
 @dataclass(frozen=True)
@@ -169,17 +175,17 @@ class ProbeArm:
 
         Returns joint positions, achieved tool positions and probing axes (+z of the URDF tool link frame), the
         poses from the URDF chain's forward kinematics (checked against PyBullet's when the arm is built), so the
-        probe's hot path is one PyBullet call per target. The arm is left standing at the last target's solution
-        (for pictures). PyBullet's IK reads its start from `currentPositions` alone, not from the arm's joints.
+        probe's hot path is one PyBullet call per target. PyBullet's IK reads its start from `currentPositions`
+        alone, not from the arm's joints, which stay where they were.
         """
-        cid, body, tool, damping, ik = self.client.id, self.body, self.tool, self.damping, pybullet.calculateInverseKinematics
+        cid, body, tool, damping = self.client.id, self.body, self.tool, self.damping
+        ik = pybullet.calculateInverseKinematics
         flat = []
         for point, orientation, start in zip(points.tolist(), orientations.tolist(), starts.tolist()):
             flat += ik(body, tool, point, orientation, currentPositions=start, jointDamping=damping,
                        maxNumIterations=iterations, residualThreshold=1e-6, physicsClientId=cid)
         qs = np.clip(np.array(flat).reshape(len(points), len(self.joints)), self.lower, self.upper)
         tips, axes = tool_frames(qs, *self.chain)
-        self.set_joints(qs[-1])
         return qs, tips, axes
 
     def _check_kinematics(self, samples: int = 8) -> None:
@@ -193,34 +199,36 @@ class ProbeArm:
             state = self.client.getLinkState(self.body, self.tool, computeForwardKinematics=True)
             gap = max(np.abs(tip - state[4]).max(), np.abs(axis - z_axes(np.array(state[5]))[0]).max())
             if gap > 1e-5:
-                raise ValueError(f"robot URDF {self.urdf}: the tool link's pose from the URDF's joint chain is {gap:.2g} "
-                                 f"off PyBullet's at joint positions {np.round(q, 3).tolist()}")
+                raise ValueError(f"robot URDF {self.urdf}: the tool link's pose from the URDF's joint chain is "
+                                 f"{gap:.2g} off PyBullet's at joint positions {np.round(q, 3).tolist()}")
 
     def reach(self, points: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Move the tool to each (P, u) in turn; return achieved tip positions and +z axes (n, 3) each, and
-        their pose errors (n, 2) as `pose_error` gives them."""
+        """Solve the tool's pose for each (P, u); return achieved tip positions and +z axes (n, 3) each, and their
+        pose errors (n, 2) as `pose_error` gives them. The arm is left standing at the last one (for pictures)."""
         orients = tool_orientations(dirs)
         starts = self.map_q[self.grid.nearest(self.scene, points, dirs)]
-        _, tips, axes = self.place(points, orients, starts, self.ik_iterations)
+        qs, tips, axes = self.place(points, orients, starts, self.ik_iterations)
         errors = self.pose_error(points, dirs, tips, axes)
         for i in np.flatnonzero(~achieved(errors)):
-            tips[i], axes[i] = self._retry(points[i], dirs[i], orients[i])
+            qs[i], tips[i], axes[i] = self._retry(points[i], dirs[i], orients[i])
             errors[i] = self.pose_error(points[i:i + 1], dirs[i:i + 1], tips[i:i + 1], axes[i:i + 1])[0]
+        if len(qs):
+            self.set_joints(qs[-1])
         return tips, axes, errors
 
     def _retry(self, point: np.ndarray, direction: np.ndarray, orientation: np.ndarray,
-               tries: int = 6) -> tuple[np.ndarray, np.ndarray]:
-        """Rare slow path: warm starts from the reach-map entries next to the nearest one, keeping the best pose."""
+               tries: int = 6) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Rare slow path: warm starts from the reach-map entries next to the nearest one; the first pose within
+        the tolerances, or else the closest. Returns its joints, tip and axis."""
         best = None
         for entry in self._neighbours(int(self.grid.nearest(self.scene, point[None], direction[None])[0]), tries):
-            _, tip, axis = self.place(point[None], orientation[None], self.map_q[entry][None], self.ik_iterations)
-            tip, axis = tip[0], axis[0]
-            err = self.pose_error(point[None], direction[None], tip[None], axis[None])[0]
-            if best is None or err[0] + 1e-3 * err[1] < best[0]:
-                best = (err[0] + 1e-3 * err[1], tip, axis)
+            q, tip, axis = self.place(point[None], orientation[None], self.map_q[entry][None], self.ik_iterations)
+            err = self.pose_error(point[None], direction[None], tip, axis)[0]
             if achieved(err):
-                break
-        return best[1], best[2]
+                return q[0], tip[0], axis[0]
+            if best is None or err[0] + 1e-3 * err[1] < best[0]:
+                best = (err[0] + 1e-3 * err[1], q[0], tip[0], axis[0])
+        return best[1:]
 
     def _neighbours(self, entry: int, count: int) -> np.ndarray:
         """The `count` grid entries closest to `entry` (itself excluded), in request space: cached per arm, as
@@ -251,6 +259,9 @@ class ProbeArm:
 
     def pose_error(self, points: np.ndarray, dirs: np.ndarray, tips: np.ndarray, axes: np.ndarray) -> np.ndarray:
         """(n, 2): position error in metres and angle error in degrees of achieved vs requested poses."""
+        shapes = {name: np.shape(a) for name, a in (("points", points), ("dirs", dirs), ("tips", tips), ("axes", axes))}
+        if len(set(shapes.values())) > 1 or np.ndim(points) != 2 or np.shape(points)[1] != 3:
+            raise ValueError(f"pose_error: expected four (n, 3) arrays, got shapes {shapes}")
         return pose_errors(points, dirs, tips, axes)
 
     def _build_reach_map(self, seed: int, restarts: int = 12) -> tuple[np.ndarray, np.ndarray]:

@@ -27,6 +27,7 @@ import yourdfpy
 from lxml import etree
 
 from hg.sim.client import BulletClient
+from hg.sim.kernels import tool_frames
 from hg.sim.robot import (ANGLE_TOLERANCE_DEG, POSITION_TOLERANCE, TOOL_LINK, ProbeArm, ReachGrid, achieved,
                           load_robot, tool_orientations)
 from hg.sim.scene import Scene
@@ -467,9 +468,8 @@ def _solve(arm: ProbeArm, point: np.ndarray, orientation: list[float] | None, st
     if clip:
         q = np.clip(q, arm.lower, arm.upper)
     arm.set_joints(q)
-    state = arm.client.getLinkState(arm.body, arm.tool, computeForwardKinematics=True)
-    m = arm.client.getMatrixFromQuaternion(state[5])
-    return q, np.array(state[4]), np.array([m[2], m[5], m[8]])
+    tips, axes = tool_frames(q[None], *arm.chain)  # the pose the simulator computes, not PyBullet's float32 one
+    return q, tips[0], axes[0]
 
 
 def diagnose_miss(arm: ProbeArm, point: np.ndarray, direction: np.ndarray, pivot: tuple[str, np.ndarray, float],
