@@ -94,6 +94,7 @@ class Row:
 
 
 TOUCH_SETS, LONG, STABLE_RL = "configs/parts/touch_sets.yaml", "configs/parts/long.yaml", "configs/parts/stable_rl.yaml"
+REPAIRED = ("configs/parts/centred_points.yaml", "configs/parts/new_touch.yaml")  # the paper's method, repaired (#57)
 LIBRARY = "configs/parts/library_classifier.yaml"  # planner_copy's library classifier: its first teacher file's library
 PLANNER_COPY = ("configs/planner_copy.yaml", STABLE_RL, TOUCH_SETS, LONG)
 # the greedy planner's library: 65536 training episodes, with their moves along the line and mirror images
@@ -107,6 +108,11 @@ ROWS = {
     "pcrn_nclass_as_written": Row("PCRN-N-class, the paper's hybrid rule as written", "learned", "learned",
                                   ("configs/pcrn_nclass.yaml",), paper="PCRN-N-class", was="pcrn_nclass"),
     "lstm": Row("LSTM", "learned", "learned", ("configs/lstm.yaml",), paper="LSTM", was="lstm"),
+    "pcrn_fc": Row("PCRN-FC and the paper's Gaussian location network from no scan, repaired: points read around "
+                   "their touches' centre, REINFORCE out of the encoder, the probe count, a new-touch reward",
+                   "learned", "learned", ("configs/pcrn_fc.yaml", *REPAIRED), paper="PCRN-FC"),
+    "pcrn_nclass": Row("PCRN-N-class and the paper's Gaussian location network from no scan, repaired as pcrn_fc",
+                       "learned", "learned", ("configs/pcrn_nclass.yaml", *REPAIRED), paper="PCRN-N-class"),
     "random": Row("random probes + PCRN-FC", "learned", "random", ("configs/random.yaml",), was="random"),
     "line_scan": Row("line scan + PCRN-FC", "learned", "fixed", ("configs/line_scan.yaml",), was="line_scan"),
     "side_scan": Row("side-picking scan + mirrored touch-set classifiers (fixed probes)", "learned", "fixed",

@@ -46,6 +46,7 @@ ROWS = {
                                  "parts/long.yaml", "parts/library_classifier.yaml"],
     "quickstart": ["gaussian_on_side_scan.yaml", "parts/stable_rl.yaml", "parts/touch_sets.yaml",
                    "parts/quickstart.yaml"],
+    "pcrn_nclass_repaired": ["pcrn_nclass.yaml", "parts/centred_points.yaml", "parts/new_touch.yaml"],
 }
 POLICY = {"pcrn_fc": "GaussianPolicy", "pcrn_nclass": "GaussianPolicy", "lstm": "GaussianPolicy",
           "random": "RandomProbes", "line_scan": "LineScan", "side_scan": "SidePickingScan",
@@ -81,7 +82,11 @@ def test_composition_fits_and_tests_through_the_cli(row, tmp_path, monkeypatch):
     base = parts[0].removesuffix(".yaml")
     touch_sets = "parts/touch_sets.yaml" in parts
     n_probes = 10 if base == "planner_copy" else 4
-    assert type(model.encoder).__name__ == ("LSTMEncoder" if base == "lstm" else "PCRN")
+    repaired = "parts/new_touch.yaml" in parts
+    assert type(model.encoder).__name__ == ("LSTMEncoder" if base == "lstm" else
+                                            "CentredPCRN" if "parts/centred_points.yaml" in parts else "PCRN")
+    if repaired:
+        assert model.policy.reads_detached and model.policy.count_width == n_probes
     assert type(model.policy).__name__ == POLICY[base]
     heads = [type(h).__name__ for h in model.heads]
     assert heads == ([HEAD.get(base, "FCClassifier")] + ["TouchSetClassifier"] * 2 * touch_sets)
@@ -91,7 +96,8 @@ def test_composition_fits_and_tests_through_the_cli(row, tmp_path, monkeypatch):
     assert type(model.warmup).__name__ == {"gaussian_on_side_scan": "FollowPrior",
                                            "planner_copy": "ImitateTeacher"}.get(base, "NoneType")
     stable = "parts/stable_rl.yaml" in parts
-    assert (model.loss.reward, model.loss.normalize_advantage) == (("log_gain", True) if stable else ("correct", False))
+    assert (model.loss.reward, model.loss.normalize_advantage) == (("log_gain", True) if stable else
+                                                                  ("new_touch" if repaired else "correct", False))
     assert model.hparams.policy_lr_scale == (0.3 if stable else 1.0)
     assert trainer.gradient_clip_val == (1.0 if stable else None)
     lr_final = 0.05 if {"parts/long.yaml", "parts/quickstart.yaml"} & set(parts) else 1.0
