@@ -16,7 +16,7 @@ be run separately (even on other machines) and merged, and an interrupted run re
 the next step; the run resumes next time). Each record is one read of the test split; the table counts them per row.
 
     .venv/bin/python scripts/reproduce_table1.py --jobs 2                     # every row, seeds 0 1 2
-    .venv/bin/python scripts/reproduce_table1.py --rows lstm --seeds 0        # one run; finished runs are reused
+    .venv/bin/python scripts/reproduce_table1.py --rows random --seeds 0      # one run; finished runs are reused
     RAY_ADDRESS=head:6379 .venv/bin/python scripts/reproduce_table1.py --threads 4   # on a Ray cluster
     .venv/bin/python scripts/reproduce_table1.py --merge-only                 # table1.* and docs/ablations.md
     .venv/bin/python scripts/reproduce_table1.py --ablations                  # docs/ablations.md alone
@@ -107,12 +107,15 @@ ROWS = {
                               ("configs/pcrn_fc.yaml",), paper="PCRN-FC", was="pcrn_fc"),
     "pcrn_nclass_as_written": Row("PCRN-N-class, the paper's hybrid rule as written", "learned", "learned",
                                   ("configs/pcrn_nclass.yaml",), paper="PCRN-N-class", was="pcrn_nclass"),
-    "lstm": Row("LSTM", "learned", "learned", ("configs/lstm.yaml",), paper="LSTM", was="lstm"),
+    "lstm_as_written": Row("LSTM, the paper's hybrid rule as written", "learned", "learned", ("configs/lstm.yaml",),
+                           paper="LSTM", was="lstm"),
     "pcrn_fc": Row("PCRN-FC and the paper's Gaussian location network from no scan, repaired: points read around "
                    "their touches' centre, REINFORCE out of the encoder, the probe count, a new-touch reward",
                    "learned", "learned", ("configs/pcrn_fc.yaml", *REPAIRED), paper="PCRN-FC"),
     "pcrn_nclass": Row("PCRN-N-class and the paper's Gaussian location network from no scan, repaired as pcrn_fc",
                        "learned", "learned", ("configs/pcrn_nclass.yaml", *REPAIRED), paper="PCRN-N-class"),
+    "lstm": Row("LSTM and the paper's Gaussian location network from no scan, repaired as pcrn_fc but for the centring "
+                "(its encoder is no PCRN)", "learned", "learned", ("configs/lstm.yaml", REPAIRED[1]), paper="LSTM"),
     "random": Row("random probes + PCRN-FC", "learned", "random", ("configs/random.yaml",), was="random"),
     "line_scan": Row("line scan + PCRN-FC", "learned", "fixed", ("configs/line_scan.yaml",), was="line_scan"),
     "side_scan": Row("side-picking scan + mirrored touch-set classifiers (fixed probes)", "learned", "fixed",
