@@ -171,7 +171,9 @@ def on_set(spec: Row, objects: str, composition: list[str]) -> tuple[tuple[str, 
     from hg.sim.symmetry import object_symmetries
 
     mirror = all(s.mirror for s in object_symmetries(load_object_set(objects)))
-    on_this_set = lambda args: args if mirror else tuple(a for a in args if a != "--mirror")  # noqa: E731
+    def on_this_set(args: tuple[str, ...]) -> tuple[str, ...]:
+        return args if mirror else tuple(a for a in args if a != "--mirror")
+
     plan = on_this_set(spec.plan)
     overrides = (*spec.overrides, "--data.objects", objects)
     copies, names = PLANNER_COPY[0] in composition, LIBRARY in composition
