@@ -13,7 +13,7 @@ import yourdfpy
 
 from hg.sim.client import BulletClient
 from hg.sim.kernels import tool_frames
-from hg.sim.robot import DEFAULT_URDF, TOOL_LINK, kinematic_chain, load_robot
+from hg.sim.robot import DEFAULT_URDF, TOOL_LINK, ProbeArm, kinematic_chain, load_robot, tool_orientations
 from hg.sim.scene import Scene
 from hg.sim.urdf_tools import (BasePlacement, attach_probe, kinematic_copy, load_urdf, pick_tool_link, resolve_urdf,
                                search_base, set_base, swap_robot)
@@ -273,3 +273,27 @@ def test_cli_error_in_a_fresh_process_has_no_traceback(tmp_path):
     done = subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, timeout=60)
     assert done.returncode == 2
     assert "Traceback" not in done.stderr and fragments[-1] in done.stderr
+
+
+def test_a_joint_that_turns_without_limit_is_wrapped_not_clipped(tmp_path):
+    """An IK solution a turn or more away on a continuous joint is the same pose: the arm must keep it, not clip it."""
+    root = ET.parse(DEFAULT_URDF).getroot()
+    joint = root.find("joint[@name='joint_4']")
+    joint.set("type", "continuous")
+    for bound in ("lower", "upper"):  # a continuous joint has none
+        joint.find("limit").attrib.pop(bound)
+    urdf = tmp_path / "continuous.urdf"
+    ET.ElementTree(root).write(urdf)
+    with BulletClient() as client:
+        arm = ProbeArm(client, urdf, Scene())
+        column = arm.joint_names.index("joint_4")
+        assert arm.wraps.tolist() == [name == "joint_4" for name in arm.joint_names]
+        points, dirs = arm.grid_targets
+        pick = np.arange(0, len(points), 97)
+        orients = tool_orientations(dirs[pick])
+        starts = arm.map_q[pick]
+        q, tips, axes = arm.place(points[pick], orients, starts, arm.ik_iterations)
+        starts[:, column] += 4 * np.pi  # two turns on: IK stays near its start, beyond the +-2 pi bounds
+        q_far, tips_far, axes_far = arm.place(points[pick], orients, starts, arm.ik_iterations)
+    assert np.abs(q_far[:, column]).max() <= np.pi
+    assert np.abs(tips_far - tips).max() <= 1e-4 and np.abs(axes_far - axes).max() <= 1e-4

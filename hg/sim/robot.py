@@ -156,6 +156,8 @@ class ProbeArm:
         unlimited = lower >= upper  # URDF continuous joints or missing limits
         self.lower = np.where(unlimited, -2 * math.pi, lower)
         self.upper = np.where(unlimited, 2 * math.pi, upper)
+        # a joint that turns without limit is wrapped into one turn, which keeps its pose; clipping would move it
+        self.wraps = unlimited & np.array([info[j][2] == pybullet.JOINT_REVOLUTE for j in self.joints], dtype=bool)
         self.ik_iterations = ik_iterations
         self.damping = [ik_damping] * len(self.joints)  # PyBullet's default damping converges slowly
         self.chain = kinematic_chain(self.urdf, tool_link, self.joint_names)
@@ -171,7 +173,8 @@ class ProbeArm:
 
     def place(self, points: np.ndarray, orientations: np.ndarray, starts: np.ndarray,
               iterations: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """One IK call per target from its warm start; solutions outside the joint limits are clipped into them.
+        """One IK call per target from its warm start; solutions outside the joint limits are clipped into them
+        (wrapped into (-pi, pi] for a joint that turns without limit).
 
         Returns joint positions, achieved tool positions and probing axes (+z of the URDF tool link frame), the
         poses from the URDF chain's forward kinematics (checked against PyBullet's when the arm is built), so the
@@ -184,7 +187,8 @@ class ProbeArm:
         for point, orientation, start in zip(points.tolist(), orientations.tolist(), starts.tolist()):
             flat += ik(body, tool, point, orientation, currentPositions=start, jointDamping=damping,
                        maxNumIterations=iterations, residualThreshold=1e-6, physicsClientId=cid)
-        qs = np.clip(np.array(flat).reshape(len(points), len(self.joints)), self.lower, self.upper)
+        qs = np.array(flat).reshape(len(points), len(self.joints))
+        qs = np.where(self.wraps, np.remainder(qs + math.pi, 2 * math.pi) - math.pi, np.clip(qs, self.lower, self.upper))
         tips, axes = tool_frames(qs, *self.chain)
         return qs, tips, axes
 

@@ -27,9 +27,9 @@ import yourdfpy
 from lxml import etree
 
 from hg.sim.client import BulletClient
-from hg.sim.kernels import tool_frames
-from hg.sim.robot import (ANGLE_TOLERANCE_DEG, POSITION_TOLERANCE, TOOL_LINK, ProbeArm, ReachGrid, achieved,
-                          load_robot, tool_orientations)
+from hg.sim.kernels import FIXED, tool_frames
+from hg.sim.robot import (ANGLE_TOLERANCE_DEG, JOINT_KINDS, POSITION_TOLERANCE, TOOL_LINK, ProbeArm, ReachGrid,
+                          achieved, load_robot, tool_orientations)
 from hg.sim.scene import Scene
 
 WORLD_LINK = "world"
@@ -38,7 +38,6 @@ ROD_LINK, ROD_JOINT, TIP_JOINT = "probe_rod", "probe_mount", "probe_tip_joint"
 ROD_LENGTH, ROD_RADIUS, ROD_MASS = 0.25, 0.008, 0.2
 SEARCH_GRID = ReachGrid(n_y=5, n_dir=5)  # coarse: scores a base candidate in well under a second
 VISUALS = ("copy", "collision")
-MOVABLE = ("revolute", "continuous", "prismatic")
 LICENCE_NAMES = ("LICENSE", "LICENCE", "COPYING")
 
 
@@ -396,7 +395,7 @@ def chain_joints(robot: yourdfpy.Robot, link: str) -> list[yourdfpy.Joint]:
 
 def movable_joints(robot: yourdfpy.Robot, link: str) -> int:
     """How many joints between the root and `link` move (what IK has to place it with)."""
-    return sum(j.type in MOVABLE for j in chain_joints(robot, link))
+    return sum(JOINT_KINDS.get(j.type, FIXED) != FIXED for j in chain_joints(robot, link))
 
 
 def reach_bound(robot: yourdfpy.Robot, link: str = TOOL_LINK) -> tuple[str, float]:
