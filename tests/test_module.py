@@ -47,6 +47,8 @@ ROWS = {
     "quickstart": ["gaussian_on_side_scan.yaml", "parts/stable_rl.yaml", "parts/touch_sets.yaml",
                    "parts/quickstart.yaml"],
     "pcrn_nclass_repaired": ["pcrn_nclass.yaml", "parts/centred_points.yaml", "parts/new_touch.yaml"],
+    "choice_on_side_scan": ["side_scan.yaml", "parts/choice_on_scan.yaml", "parts/stable_rl.yaml",
+                            "parts/touch_sets.yaml"],
 }
 POLICY = {"pcrn_fc": "GaussianPolicy", "pcrn_nclass": "GaussianPolicy", "lstm": "GaussianPolicy",
           "random": "RandomProbes", "line_scan": "LineScan", "side_scan": "SidePickingScan",
@@ -60,8 +62,10 @@ def args_of(parts: list[str], *extra: str) -> list[str]:
     args = [a for part in [*parts, "parts/tiny.yaml"] for a in ("--config", str(CONFIGS / part))]
     if parts[0] == "planner_copy.yaml":
         args += ["--data.n_probes", "10", "--model.warmup.init_args.teachers", json.dumps(TEACHERS)]
-    if parts[0] in ("planner_copy.yaml", "gaussian_on_side_scan.yaml"):
+    if parts[0] in ("planner_copy.yaml", "gaussian_on_side_scan.yaml") or "parts/choice_on_scan.yaml" in parts:
         args += ["--model.warmup.init_args.steps", "2"]
+    if "parts/choice_on_scan.yaml" in parts:  # the scan's places are the choice's: tiny.yaml's 4 probes
+        args += ["--model.policy.init_args.places", "4"]
     if "parts/library_classifier.yaml" in parts:
         args += ["--model.library_classifier.teacher", TEACHERS[0], "--model.library_classifier.episodes", "64"]
     return [*args, *QUIET, *extra]
@@ -87,14 +91,17 @@ def test_composition_fits_and_tests_through_the_cli(row, tmp_path, monkeypatch):
                                             "CentredPCRN" if "parts/centred_points.yaml" in parts else "PCRN")
     if repaired:
         assert model.policy.reads_detached and model.policy.count_width == n_probes
-    assert type(model.policy).__name__ == POLICY[base]
+    on_scan = "parts/choice_on_scan.yaml" in parts
+    assert type(model.policy).__name__ == ("CandidateChoice" if on_scan else POLICY[base])
+    if on_scan:
+        assert type(model.policy.prior).__name__ == "SidePickingScan" and model.warmup.imitate
     heads = [type(h).__name__ for h in model.heads]
     assert heads == ([HEAD.get(base, "FCClassifier")] + ["TouchSetClassifier"] * 2 * touch_sets)
     if touch_sets:
         assert [(h.mirror, h.last_only) for h in model.heads[1:]] == [(True, False), (True, True)]
     assert model.hparams.n_probes == n_probes == fit.datamodule.n_probes
-    assert type(model.warmup).__name__ == {"gaussian_on_side_scan": "FollowPrior",
-                                           "planner_copy": "ImitateTeacher"}.get(base, "NoneType")
+    assert type(model.warmup).__name__ == ("FollowPrior" if on_scan else {
+        "gaussian_on_side_scan": "FollowPrior", "planner_copy": "ImitateTeacher"}.get(base, "NoneType"))
     stable = "parts/stable_rl.yaml" in parts
     assert (model.loss.reward, model.loss.normalize_advantage) == (("log_gain", True) if stable else
                                                                   ("new_touch" if repaired else "correct", False))
@@ -110,7 +117,7 @@ def test_composition_fits_and_tests_through_the_cli(row, tmp_path, monkeypatch):
     logged = trainer.callback_metrics
     if model.policy.learned:  # the policy learned by REINFORCE after any warm-up; the copy imitated before it
         assert torch.isfinite(logged["train/loss_policy"])
-        assert ("train/loss_imitation" in logged) == (base == "planner_copy")
+        assert ("train/loss_imitation" in logged) == (base == "planner_copy" or on_scan)
     else:
         assert "train/loss_policy" not in logged
     if "parts/library_classifier.yaml" in parts:  # 64 training episodes, moved along the line and mirrored
@@ -118,7 +125,7 @@ def test_composition_fits_and_tests_through_the_cli(row, tmp_path, monkeypatch):
         assert episodes.shape[0] == 77 and 64 <= episodes.shape[1] <= 64 * 11 * 2
         assert not any(key.startswith("library") for key in model.state_dict())  # rebuilt, never checkpointed
     saved = yaml.safe_load((root / "config.yaml").read_text())
-    assert saved["model"]["policy"]["class_path"] == f"hg.policies.{POLICY[base]}"
+    assert saved["model"]["policy"]["class_path"] == f"hg.policies.{type(model.policy).__name__}"
     # a checkpoint rebuilds the composed model without its configs
     loaded = HapticGlance.load_from_checkpoint(root / "checkpoints" / "last.ckpt", map_location="cpu")
     assert type(loaded.policy) is type(model.policy)

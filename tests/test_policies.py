@@ -302,3 +302,27 @@ def test_imitation_loss_falls_when_fitting_a_teacher(teacher, name):
         optimizer.step()
         losses.append(loss.item())
     assert np.mean(losses[-5:]) < 0.8 * np.mean(losses[:5]), losses
+
+
+def test_a_choice_with_a_prior_scan_learns_to_copy_it_and_refuses_a_scan_it_cannot(sim, batch):
+    """FollowPrior(imitate=true)'s copy: fitted to the side-picking scan's own rollouts, the choice's most likely
+    requests are the scan's, probe for probe, on the same episodes; a scan off the choice's grid is refused when
+    built, naming the grid."""
+    torch.manual_seed(0)
+    choice = CandidateChoice(DIMS, places=N, span=0.5, leans=(0.6, 1.0), hidden=32, prior=side_scan)
+    encoder = PCRN(width=16, out_dim=32)
+    scanned = rollout(sim, choice.prior, batch["labels"], batch["poses"], 0, N, 2.0, encoder)
+    assert (scanned.requests[..., 1] != 0).any()  # it leans: not a line scan
+    optimizer = torch.optim.Adam(choice.parameters(), lr=1e-2)
+    for _ in range(150):
+        evaluated = choice.evaluate(encoder(scanned.requests, scanned.points).detach(), scanned.actions,
+                                    scanned.points)
+        loss = choice.imitation_loss(evaluated, scanned.actions)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    copied = rollout(sim, choice, batch["labels"], batch["poses"], 0, N, 2.0, encoder, deterministic=True)
+    torch.testing.assert_close(copied.requests, scanned.requests)
+    with pytest.raises(ValueError, match=r"CandidateChoice: prior SidePickingScan: request .* is not one of the 25 "
+                                         r"candidates \(places=5, span=0.5"):
+        CandidateChoice(DIMS, places=N + 1, span=0.5, leans=(0.6, 1.0), prior=side_scan)

@@ -3,13 +3,17 @@ the middle of the line x straight or leaning to +-x). A Gaussian copying a teach
 up between them; a choice cannot average two sides."""
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from hg.nets import CandidateLocationNetwork
 from hg.nets.dims import Dims
+from hg.nets.location import candidate_index
 from hg.policies.base import LearnedPolicy, Observation, PolicyEval
+from hg.policies.scans import Scan
 from hg.sim import candidate_requests
 
 
@@ -17,10 +21,13 @@ class CandidateChoice(LearnedPolicy):
     """pi(a_k | s_k) over `places` x (straight, +-x by each of `leans`) candidates, reading what each candidate read
     so far (CandidateLocationNetwork.readings) and never probing one twice. With `reads_encoder` the choice also
     reads PCRN's state; without it, the readings only (the baseline always reads both): PCRN's state holds where
-    the training objects lay, which held-out positions do not share."""
+    the training objects lay, which held-out positions do not share. With a `prior` scan, whose requests must be
+    among the candidates, a FollowPrior(imitate=true) warm-up teaches the choice to copy it before it learns by the
+    hybrid rule: a learned policy that starts as good as the scan."""
 
     def __init__(self, dims: Dims, places: int = 11, span: float = 0.5, leans: tuple[float, ...] = (0.6, 1.0, 2.0),
-                 hidden: int = 128, reads_encoder: bool = False, reads_detached: bool = False) -> None:
+                 hidden: int = 128, reads_encoder: bool = False, reads_detached: bool = False,
+                 prior: Callable[[Dims], Scan] | None = None) -> None:
         try:
             candidates = torch.from_numpy(candidate_requests(places, span, list(leans)))
         except ValueError as error:
@@ -33,6 +40,24 @@ class CandidateChoice(LearnedPolicy):
         self.n_probes, self.grid = dims.n_probes, {"places": places, "span": span, "leans": list(leans)}
         self.location = CandidateLocationNetwork(state_dim, candidates, hidden=hidden,
                                                  reads_from=0 if reads_encoder else dims.rep)
+        self.prior = prior(dims) if prior is not None else None
+        if self.prior is not None:
+            self._check_prior(dims)
+
+    def _check_prior(self, dims: Dims) -> None:
+        """Refuse, when built, a prior scan that makes requests the choice cannot copy: its requests after probes
+        that touched nothing, touched everywhere, or touched higher on either side of the first pair."""
+        n = dims.n_probes
+        touched = torch.zeros(3, n, 4)
+        touched[1:, :, 3] = 1.0
+        touched[1, 0, 2], touched[2, 1, 2] = 0.5, 0.5  # the higher touch on one side, then on the other
+        nothing = torch.zeros(1, n, 4)
+        try:
+            candidate_index(self.prior.requests(torch.cat([nothing, touched])), self.candidates)
+        except ValueError as error:
+            raise ValueError(f"CandidateChoice: prior {type(self.prior).__name__}: {error} (places={self.grid['places']}"
+                             f", span={self.grid['span']}, leans={self.grid['leans']}; a scan over n_probes places "
+                             f"needs places=n_probes and the same span)") from None
 
     @property
     def candidates(self) -> Tensor:

@@ -31,7 +31,12 @@ class Warmup:
 
 class FollowPrior(Warmup):
     """The policy's prior scan probes, untrained, so that the policy then starts exactly where the classifiers
-    learned."""
+    learned. `imitate`: the policy learns to copy the scan meanwhile, for a policy that does not start on its prior
+    (a choice among candidates; a Gaussian starts on it by construction)."""
+
+    def __init__(self, steps: int, imitate: bool = False) -> None:
+        super().__init__(steps)
+        self.imitate = imitate
 
     def prober(self, policy: Policy) -> Policy:
         if getattr(policy, "prior", None) is None:
