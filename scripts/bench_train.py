@@ -6,9 +6,10 @@ max_steps / val_check_interval times in the projection. The network's arithmetic
 model: the rollout's policy and encoder steps, the loss pass, backward and Adam's step, with a recorded rollout
 replayed in place of the simulator and no Lightning (`network_ms`); `sim_fraction_ceiling` is the simulator's share
 if everything else in a step cost nothing beyond that arithmetic. That arithmetic's matrix products are counted
-(`network_gflop`, torch's FlopCounterMode) and this machine's rate on one large product is timed in the same run
-(`matmul_gflops`): `sim_fraction_at_peak` is the simulator's share if the step's products ran at that rate and
-nothing else cost anything, the bound no rewrite of the code around the network can pass. Last line: JSON with
+(`network_gflop_per_step` and by part, torch's FlopCounterMode) and this machine's rate on one large product is timed
+in the same run at the run's threads (`matmul_gflop_per_s`): `sim_fraction_at_peak` is the simulator's share if the
+step's products ran at that rate and nothing else cost anything; `..._no_rollout` the same without the rollout's
+forward passes, which the loss pass computes again. Last line: JSON with
 steps_per_s, sim_fraction, projected_paper_minutes, the split, network_ms, the counts and bounds, and the host.
 
     .venv/bin/python scripts/bench_train.py --config configs/side_scan.yaml --config configs/parts/touch_sets.yaml
@@ -16,6 +17,7 @@ steps_per_s, sim_fraction, projected_paper_minutes, the split, network_ms, the c
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import tempfile
 import time
@@ -94,27 +96,36 @@ def network_ms(model: pl.LightningModule, batch: dict, repeats: int) -> dict[str
     regime = "reinforce" if model.policy.learned else "classify"
     optimizer = model.configure_optimizers()
 
-    def step() -> tuple[float, float, float]:
+    def step(gflop: list[float] | None = None) -> tuple[float, float, float]:
+        """One step's parts timed; with `gflop`, their matrix products counted into it instead (a slower pass)."""
+        counters = [FlopCounterMode(display=False) if gflop is not None else contextlib.nullcontext()
+                    for _ in range(3)]
         t0 = time.perf_counter()
-        replayed = rollout(replay, model.policy, labels, poses, seed, model.hparams.n_probes, model.hparams.point_scale,
-                           model.encoder)
+        with counters[0]:
+            replayed = rollout(replay, model.policy, labels, poses, seed, model.hparams.n_probes,
+                               model.hparams.point_scale, model.encoder)
         t1 = time.perf_counter()
-        terms, _ = model.evaluate(replayed, labels, regime)
+        with counters[1]:
+            terms, _ = model.evaluate(replayed, labels, regime)
         t2 = time.perf_counter()
-        optimizer.zero_grad()
-        terms["loss"].backward()
-        optimizer.step()
+        with counters[2]:
+            optimizer.zero_grad()
+            terms["loss"].backward()
+            optimizer.step()
+        if gflop is not None:
+            gflop += [counter.get_total_flops() / 1e9 for counter in counters]
         return t1 - t0, t2 - t1, time.perf_counter() - t2
 
     times = [step() for _ in range(repeats + 2)]  # the first two untimed
     parts = 1000 * np.median(np.array(times[2:]), axis=0)
-    with FlopCounterMode(display=False) as counter:
-        step()
+    gflop: list[float] = []
+    step(gflop)
     return {"network_ms": float(parts.sum()), "rollout_network_ms": float(parts[0]), "loss_pass_ms": float(parts[1]),
-            "backward_adam_ms": float(parts[2]), "network_gflop": counter.get_total_flops() / 1e9}
+            "backward_adam_ms": float(parts[2]), "network_gflop_per_step": sum(gflop), "rollout_gflop": gflop[0],
+            "loss_pass_gflop": gflop[1], "backward_gflop": gflop[2]}
 
 
-def matmul_gflops(size: int = 1024, repeats: int = 20) -> float:
+def matmul_gflop_per_s(size: int = 1024, repeats: int = 20) -> float:
     """This machine's float32 rate on one large matrix product, at the run's thread count: near its peak, an upper
     bound for the small products of the network."""
     a, b = torch.randn(size, size), torch.randn(size, size)
@@ -158,7 +169,7 @@ def main() -> None:
         run.model.attach(data.make_simulator())
         network = network_ms(run.model, next(iter(data.train_dataloader())), args.network_repeats)
         run.model.sim.close()
-    peak = matmul_gflops()
+    peak = matmul_gflop_per_s()
     step = timer.step_time / timer.steps
     sim_ms = 1000 * timer.sim_time / timer.steps
     figures = {
@@ -169,11 +180,14 @@ def main() -> None:
         "sim_fraction": round(timer.sim_time / timer.step_time, 3),
         "forward_fraction": round(1 - (timer.sim_time + timer.backward_time) / timer.step_time, 3),
         "backward_fraction": round(timer.backward_time / timer.step_time, 3),
-        **{k: round(v, 2 if k == "network_gflop" else 1) for k, v in network.items()},
+        **{k: round(v, 2 if "gflop" in k else 1) for k, v in network.items()},
         "sim_fraction_ceiling": round(sim_ms / (sim_ms + network["network_ms"]), 3),
-        "network_gflops_achieved": round(network["network_gflop"] / network["network_ms"] * 1000, 1),
-        "matmul_gflops": round(peak, 1),
-        "sim_fraction_at_peak": round(sim_ms / (sim_ms + 1000 * network["network_gflop"] / peak), 3),
+        "network_gflop_per_s": round(network["network_gflop_per_step"] / network["network_ms"] * 1000, 1),
+        "matmul_gflop_per_s": round(peak, 1),
+        "sim_fraction_at_peak": round(sim_ms / (sim_ms + 1000 * network["network_gflop_per_step"] / peak), 3),
+        # the rollout's forward passes, which the loss pass computes again on the same probes, left out
+        "sim_fraction_at_peak_no_rollout": round(sim_ms / (sim_ms + 1000 * (
+            network["network_gflop_per_step"] - network["rollout_gflop"]) / peak), 3),
         "validation_s": round(val_seconds, 1),
         "projected_paper_minutes": round((paper_steps * step + paper_steps // val_every * val_seconds) / 60, 1),
         "threads": torch.get_num_threads(),
@@ -183,9 +197,10 @@ def main() -> None:
           f"{figures['forward_fraction']:.0%}, backward {figures['backward_fraction']:.0%}; one validation "
           f"{val_seconds:.1f} s; {paper_steps} steps projected at {figures['projected_paper_minutes']} min on "
           f"{figures['host']}; the network's arithmetic alone {network['network_ms']:.1f} ms per step (simulator share at most "
-          f"{figures['sim_fraction_ceiling']:.0%}); its matrix products {network['network_gflop']:.2f} GFLOP at "
-          f"{figures['network_gflops_achieved']} GFLOP/s, this machine's large product {figures['matmul_gflops']} GFLOP/s "
-          f"(simulator share at most {figures['sim_fraction_at_peak']:.0%} at that rate)")
+          f"{figures['sim_fraction_ceiling']:.0%}); its matrix products {network['network_gflop_per_step']:.2f} GFLOP at "
+          f"{figures['network_gflop_per_s']} GFLOP/s, this machine's large product {figures['matmul_gflop_per_s']} "
+          f"GFLOP/s on {figures['threads']} thread(s) (simulator share at most {figures['sim_fraction_at_peak']:.0%} at "
+          f"that rate, {figures['sim_fraction_at_peak_no_rollout']:.0%} with the rollout's forward not done twice)")
     print(json.dumps(figures))
 
 

@@ -323,6 +323,6 @@ def test_a_choice_with_a_prior_scan_learns_to_copy_it_and_refuses_a_scan_it_cann
         optimizer.step()
     copied = rollout(sim, choice, batch["labels"], batch["poses"], 0, N, 2.0, encoder, deterministic=True)
     torch.testing.assert_close(copied.requests, scanned.requests)
-    with pytest.raises(ValueError, match=r"CandidateChoice: prior SidePickingScan: request .* is not one of the 25 "
-                                         r"candidates \(places=5, span=0.5"):
+    with pytest.raises(ValueError, match=r"model.policy.init_args.prior: SidePickingScan: request .* is not one of "
+                                         r"the 25 candidates of CandidateChoice\(places=5, span=0.5.* needs places=4"):
         CandidateChoice(DIMS, places=N + 1, span=0.5, leans=(0.6, 1.0), prior=side_scan)

@@ -13,7 +13,8 @@ import yourdfpy
 
 from hg.sim.client import BulletClient
 from hg.sim.kernels import tool_frames
-from hg.sim.robot import DEFAULT_URDF, TOOL_LINK, ProbeArm, kinematic_chain, load_robot, tool_orientations
+from hg.sim.robot import (DEFAULT_URDF, TOOL_LINK, ProbeArm, ReachGrid, kinematic_chain, load_robot,
+                          tool_orientations)
 from hg.sim.scene import Scene
 from hg.sim.urdf_tools import (BasePlacement, attach_probe, kinematic_copy, load_urdf, pick_tool_link, resolve_urdf,
                                search_base, set_base, swap_robot)
@@ -285,15 +286,18 @@ def test_a_joint_that_turns_without_limit_is_wrapped_not_clipped(tmp_path):
     urdf = tmp_path / "continuous.urdf"
     ET.ElementTree(root).write(urdf)
     with BulletClient() as client:
-        arm = ProbeArm(client, urdf, Scene())
+        arm = ProbeArm(client, urdf, Scene(), grid=ReachGrid(n_y=5, n_dir=5))
         column = arm.joint_names.index("joint_4")
         assert arm.wraps.tolist() == [name == "joint_4" for name in arm.joint_names]
         points, dirs = arm.grid_targets
-        pick = np.arange(0, len(points), 97)
-        orients = tool_orientations(dirs[pick])
-        starts = arm.map_q[pick]
-        q, tips, axes = arm.place(points[pick], orients, starts, arm.ik_iterations)
+        orients = tool_orientations(dirs)
+        starts = arm.map_q.copy()
+        q, tips, axes = arm.place(points, orients, starts, arm.ik_iterations)
         starts[:, column] += 4 * np.pi  # two turns on: IK stays near its start, beyond the +-2 pi bounds
-        q_far, tips_far, axes_far = arm.place(points[pick], orients, starts, arm.ik_iterations)
+        raw = client.calculateInverseKinematics(arm.body, arm.tool, points[0].tolist(), orients[0].tolist(),
+                                                currentPositions=starts[0].tolist(), jointDamping=arm.damping,
+                                                maxNumIterations=arm.ik_iterations)
+        assert abs(raw[column]) > 2 * np.pi  # what clipping would have cut
+        q_far, tips_far, axes_far = arm.place(points, orients, starts, arm.ik_iterations)
     assert np.abs(q_far[:, column]).max() <= np.pi
     assert np.abs(tips_far - tips).max() <= 1e-4 and np.abs(axes_far - axes).max() <= 1e-4

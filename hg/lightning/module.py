@@ -13,7 +13,7 @@ from hg.nets import TouchSetClassifier
 from hg.nets.dims import Dims
 from hg.policies import LearnedPolicy, Policy
 from hg.rl import HybridLoss, Rollout, rollout
-from hg.rl.warmup import ImitateTeacher, Warmup
+from hg.rl.warmup import FollowPrior, ImitateTeacher, Warmup
 from hg.sim import ProbeSimulator
 from hg.sim.symmetry import object_symmetries, require_mirror
 from hg.lightning.library import LibrarySource
@@ -53,6 +53,10 @@ class HapticGlance(pl.LightningModule):
             raise ValueError(f"model.warmup: a fixed policy ({type(self.policy).__name__}) has nothing to warm up")
         if warmup is not None:
             warmup.prober(self.policy)  # refuses a warm-up that cannot probe with this policy
+        if self.policy.copies_prior and self.policy.prior is not None and not (
+                isinstance(warmup, FollowPrior) and warmup.imitate):
+            raise ValueError(f"model.policy.init_args.prior: {type(self.policy).__name__} starts on its prior scan only "
+                             "by copying it; set model.warmup to hg.rl.FollowPrior with imitate: true")
         if library_classifier is not None and getattr(self.policy, "grid", None) is None:
             raise ValueError(f"model.library_classifier names the planner's candidate probes; "
                              f"{type(self.policy).__name__} does not choose among them (CandidateChoice does)")

@@ -47,6 +47,7 @@ class Policy(nn.Module):
     no parameters and is not trained; the model only reads its requests."""
 
     learned = False
+    copies_prior = False  # a policy that starts on its prior scan only by copying it (FollowPrior(imitate=True))
 
     def act(self, obs: Observation, deterministic: bool, generator: torch.Generator) -> Tensor:
         """(B, 4) raw requests for probe obs.k + 1; the simulator clamps them to [-1, 1]."""

@@ -11,7 +11,6 @@ from torch import Tensor
 
 from hg.nets import CandidateLocationNetwork
 from hg.nets.dims import Dims
-from hg.nets.location import candidate_index
 from hg.policies.base import LearnedPolicy, Observation, PolicyEval
 from hg.policies.scans import Scan
 from hg.sim import candidate_requests
@@ -24,6 +23,8 @@ class CandidateChoice(LearnedPolicy):
     the training objects lay, which held-out positions do not share. With a `prior` scan, whose requests must be
     among the candidates, a FollowPrior(imitate=true) warm-up teaches the choice to copy it before it learns by the
     hybrid rule: a learned policy that starts as good as the scan."""
+
+    copies_prior = True
 
     def __init__(self, dims: Dims, places: int = 11, span: float = 0.5, leans: tuple[float, ...] = (0.6, 1.0, 2.0),
                  hidden: int = 128, reads_encoder: bool = False, reads_detached: bool = False,
@@ -53,11 +54,12 @@ class CandidateChoice(LearnedPolicy):
         touched[1, 0, 2], touched[2, 1, 2] = 0.5, 0.5  # the higher touch on one side, then on the other
         nothing = torch.zeros(1, n, 4)
         try:
-            candidate_index(self.prior.requests(torch.cat([nothing, touched])), self.candidates)
+            self.location.index_of(self.prior.requests(torch.cat([nothing, touched])))
         except ValueError as error:
-            raise ValueError(f"CandidateChoice: prior {type(self.prior).__name__}: {error} (places={self.grid['places']}"
-                             f", span={self.grid['span']}, leans={self.grid['leans']}; a scan over n_probes places "
-                             f"needs places=n_probes and the same span)") from None
+            raise ValueError(f"model.policy.init_args.prior: {type(self.prior).__name__}: {error} of CandidateChoice("
+                             f"places={self.grid['places']}, span={self.grid['span']}, leans={self.grid['leans']}); "
+                             f"a scan over n_probes={n} places needs places={n} and the scan's span, and its leans "
+                             f"(lean, first_lean) among the choice's") from None
 
     @property
     def candidates(self) -> Tensor:

@@ -26,7 +26,8 @@ from hg.sim.scene import Scene
 
 TOOL_LINK = "probe_tip"
 DEFAULT_URDF = Path(__file__).resolve().parents[2] / "urdf" / "hg_probe_arm.urdf"
-REACH_MAP_VERSION = 2  # 2: pose errors from the chain's forward kinematics, not float32 link quaternions
+REACH_MAP_VERSION = 3  # 2: pose errors from the chain's forward kinematics, not float32 link quaternions; 3: joints
+# that turn without limit wrapped into one turn, not clipped
 POSITION_TOLERANCE = 0.005  # m: a probe counts as achieved within 5 mm ...
 ANGLE_TOLERANCE_DEG = 3.0  # ... and 3 degrees
 
@@ -174,7 +175,7 @@ class ProbeArm:
     def place(self, points: np.ndarray, orientations: np.ndarray, starts: np.ndarray,
               iterations: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One IK call per target from its warm start; solutions outside the joint limits are clipped into them
-        (wrapped into (-pi, pi] for a joint that turns without limit).
+        (wrapped into [-pi, pi) for a joint that turns without limit).
 
         Returns joint positions, achieved tool positions and probing axes (+z of the URDF tool link frame), the
         poses from the URDF chain's forward kinematics (checked against PyBullet's when the arm is built), so the
