@@ -125,6 +125,11 @@ ROWS = {
         "learned Gaussian policy started on the side-picking scan + mirrored touch sets", "learned", "learned",
         ("configs/gaussian_on_side_scan.yaml", STABLE_RL, TOUCH_SETS, LONG),
         was="pcrn_fc_side_touchset_warmup_wide_std_decay_long_exact_anchor_lr_decay_final_mirror"),
+    "choice_on_side_scan": Row(
+        "a choice among candidates started on the side-picking scan (copying it for the first half), then the hybrid "
+        "rule + mirrored touch sets", "learned", "learned",
+        ("configs/side_scan.yaml", "configs/parts/choice_on_scan.yaml", STABLE_RL, TOUCH_SETS, LONG),
+        overrides=("--model.warmup.init_args.steps", "8000")),
     "planner_copy": Row("a choice among the greedy planner's candidates, copying it, then the hybrid rule: its learned "
                         "heads", "learned", "learned", PLANNER_COPY, was=COPY_65K),
     "planner_copy_library": Row("planner_copy's probes, named by the library classifier alone", "library", "learned",

@@ -64,8 +64,6 @@ def args_of(parts: list[str], *extra: str) -> list[str]:
         args += ["--data.n_probes", "10", "--model.warmup.init_args.teachers", json.dumps(TEACHERS)]
     if parts[0] in ("planner_copy.yaml", "gaussian_on_side_scan.yaml") or "parts/choice_on_scan.yaml" in parts:
         args += ["--model.warmup.init_args.steps", "2"]
-    if "parts/choice_on_scan.yaml" in parts:  # the scan's places are the choice's: tiny.yaml's 4 probes
-        args += ["--model.policy.init_args.places", "4"]
     if "parts/library_classifier.yaml" in parts:
         args += ["--model.library_classifier.teacher", TEACHERS[0], "--model.library_classifier.episodes", "64"]
     return [*args, *QUIET, *extra]

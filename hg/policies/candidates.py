@@ -26,9 +26,11 @@ class CandidateChoice(LearnedPolicy):
 
     copies_prior = True
 
-    def __init__(self, dims: Dims, places: int = 11, span: float = 0.5, leans: tuple[float, ...] = (0.6, 1.0, 2.0),
-                 hidden: int = 128, reads_encoder: bool = False, reads_detached: bool = False,
-                 prior: Callable[[Dims], Scan] | None = None) -> None:
+    def __init__(self, dims: Dims, places: int | None = 11, span: float = 0.5,
+                 leans: tuple[float, ...] = (0.6, 1.0, 2.0), hidden: int = 128, reads_encoder: bool = False,
+                 reads_detached: bool = False, prior: Callable[[Dims], Scan] | None = None) -> None:
+        """places: None for one place per probe, a scan's places along the line (a prior scan's)."""
+        places = dims.n_probes if places is None else places
         try:
             candidates = torch.from_numpy(candidate_requests(places, span, list(leans)))
         except ValueError as error:
@@ -58,8 +60,8 @@ class CandidateChoice(LearnedPolicy):
         except ValueError as error:
             raise ValueError(f"model.policy.init_args.prior: {type(self.prior).__name__}: {error} of CandidateChoice("
                              f"places={self.grid['places']}, span={self.grid['span']}, leans={self.grid['leans']}); "
-                             f"a scan over n_probes={n} places needs places={n} and the scan's span, and its leans "
-                             f"(lean, first_lean) among the choice's") from None
+                             f"a scan over n_probes={n} places needs places={n} (or null) and the scan's span, and "
+                             f"its leans (lean, first_lean) among the choice's") from None
 
     @property
     def candidates(self) -> Tensor:
