@@ -284,6 +284,20 @@ def teacher(sim):
     return out
 
 
+def fit_copy(policy, encoder, out, parameters, steps: int, lr: float) -> list[float]:
+    """The warm-up's imitation term alone, minimised on a fixed rollout by Adam over `parameters`; its losses."""
+    optimizer = torch.optim.Adam(parameters, lr=lr)
+    losses = []
+    for _ in range(steps):
+        evaluated = policy.evaluate(encoder(out.requests, out.points), out.actions, out.points)
+        loss = policy.imitation_loss(evaluated, out.actions)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        losses.append(loss.item())
+    return losses
+
+
 @pytest.mark.parametrize("name", ["gaussian", "candidate_choice"])
 def test_imitation_loss_falls_when_fitting_a_teacher(teacher, name):
     """The warm-up's copy of the planner: the policy (and the encoder it reads) fitted to the teacher's requests."""
@@ -292,15 +306,7 @@ def test_imitation_loss_falls_when_fitting_a_teacher(teacher, name):
     policy = (GaussianPolicy(dims, hidden=32) if name == "gaussian"
               else CandidateChoice(dims, places=11, span=0.5, leans=(0.6, 1.0, 2.0), hidden=32))
     encoder = PCRN(width=16, out_dim=32)
-    optimizer = torch.optim.Adam([*policy.parameters(), *encoder.parameters()], lr=3e-3)
-    losses = []
-    for _ in range(40):
-        evaluated = policy.evaluate(encoder(teacher.requests, teacher.points), teacher.actions, teacher.points)
-        loss = policy.imitation_loss(evaluated, teacher.actions)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-        losses.append(loss.item())
+    losses = fit_copy(policy, encoder, teacher, [*policy.parameters(), *encoder.parameters()], steps=40, lr=3e-3)
     assert np.mean(losses[-5:]) < 0.8 * np.mean(losses[:5]), losses
 
 
@@ -313,14 +319,7 @@ def test_a_choice_with_a_prior_scan_learns_to_copy_it_and_refuses_a_scan_it_cann
     encoder = PCRN(width=16, out_dim=32)
     scanned = rollout(sim, choice.prior, batch["labels"], batch["poses"], 0, N, 2.0, encoder)
     assert (scanned.requests[..., 1] != 0).any()  # it leans: not a line scan
-    optimizer = torch.optim.Adam(choice.parameters(), lr=1e-2)
-    for _ in range(150):
-        evaluated = choice.evaluate(encoder(scanned.requests, scanned.points).detach(), scanned.actions,
-                                    scanned.points)
-        loss = choice.imitation_loss(evaluated, scanned.actions)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
+    fit_copy(choice, encoder, scanned, choice.parameters(), steps=150, lr=1e-2)  # the encoder stays as it is
     copied = rollout(sim, choice, batch["labels"], batch["poses"], 0, N, 2.0, encoder, deterministic=True)
     torch.testing.assert_close(copied.requests, scanned.requests)
     with pytest.raises(ValueError, match=r"model.policy.init_args.prior: SidePickingScan: request .* is not one of "

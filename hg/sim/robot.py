@@ -189,7 +189,9 @@ class ProbeArm:
             flat += ik(body, tool, point, orientation, currentPositions=start, jointDamping=damping,
                        maxNumIterations=iterations, residualThreshold=1e-6, physicsClientId=cid)
         qs = np.array(flat).reshape(len(points), len(self.joints))
-        qs = np.where(self.wraps, np.remainder(qs + math.pi, 2 * math.pi) - math.pi, np.clip(qs, self.lower, self.upper))
+        if self.wraps.any():  # into [-pi, pi), inside the +-2 pi bounds the clip then leaves alone
+            qs[:, self.wraps] = np.remainder(qs[:, self.wraps] + math.pi, 2 * math.pi) - math.pi
+        qs = np.clip(qs, self.lower, self.upper, out=qs)
         tips, axes = tool_frames(qs, *self.chain)
         return qs, tips, axes
 
