@@ -119,6 +119,21 @@ def test_side_picking_scan_leans_both_ways_first_then_to_the_side_its_touches_sh
         SidePickingScan(dims, lean=3.0)
 
 
+@pytest.mark.parametrize("scan", [LineScan(DIMS, span=0.5, order="centre_out"), side_scan(Dims(32, 6, 4))])
+def test_a_scan_lists_every_request_it_can_make(scan):
+    """What a choice copying the scan is checked against: whatever the probes return (touches anywhere, at any
+    heights), each request is one the scan lists, and each it lists is made in some episode."""
+    n = len(scan.places)
+    torch.manual_seed(0)
+    points = torch.rand(512, n, 4)
+    points[..., 3] = (torch.rand(512, n) < 0.3).float()
+    made = scan.requests(points).reshape(-1, 4)
+    listed = scan.possible_requests()
+    found = (made[:, None] - listed).abs().amax(-1) < 1e-6
+    assert found.any(1).all() and found.any(0).all()
+    assert len(listed.unique(dim=0)) == len(listed)
+
+
 def test_side_picking_scan_on_real_ray_casts(sim, batch):
     scan = side_scan(DIMS)
     out = rollout(sim, scan, batch["labels"], batch["poses"], 0, N, 2.0)

@@ -48,20 +48,14 @@ class CandidateChoice(LearnedPolicy):
             self._check_prior(dims)
 
     def _check_prior(self, dims: Dims) -> None:
-        """Refuse, when built, a prior scan that makes requests the choice cannot copy: its requests after probes
-        that touched nothing, touched everywhere, or touched higher on either side of the first pair."""
-        n = dims.n_probes
-        touched = torch.zeros(3, n, 4)
-        touched[1:, :, 3] = 1.0
-        touched[1, 0, 2], touched[2, 1, 2] = 0.5, 0.5  # the higher touch on one side, then on the other
-        nothing = torch.zeros(1, n, 4)
+        """Refuse, when built, a prior scan that can make a request the choice cannot copy."""
         try:
-            self.location.index_of(self.prior.requests(torch.cat([nothing, touched])))
+            self.location.index_of(self.prior.possible_requests())
         except ValueError as error:
             raise ValueError(f"model.policy.init_args.prior: {type(self.prior).__name__}: {error} of CandidateChoice("
                              f"places={self.grid['places']}, span={self.grid['span']}, leans={self.grid['leans']}); "
-                             f"a scan over n_probes={n} places needs places={n} (or null) and the scan's span, and "
-                             f"its leans (lean, first_lean) among the choice's") from None
+                             f"a scan over n_probes={dims.n_probes} places needs places={dims.n_probes} (or null) and "
+                             f"the scan's span, and its leans (lean, first_lean) among the choice's") from None
 
     @property
     def candidates(self) -> Tensor:

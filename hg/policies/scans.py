@@ -28,6 +28,11 @@ class Scan(Policy):
         """(B, N, 4) the scan's requests given the points (B, N, 4) its probes returned; row k reads points[:, :k]."""
         raise NotImplementedError
 
+    def possible_requests(self) -> Tensor:
+        """(M, 4) every request the scan can make, whatever its probes return: what a choice that copies it must be
+        able to choose."""
+        raise NotImplementedError
+
     def act(self, obs: Observation, deterministic: bool, generator: torch.Generator) -> Tensor:
         return self.requests(obs.points)[:, obs.k]
 
@@ -53,6 +58,9 @@ class LineScan(Scan):
         n = len(self.places)
         scan = torch.stack([self.places, torch.zeros(n), torch.zeros(n), torch.ones(n)], 1)
         return scan.to(points.device).expand(len(points), -1, -1).clone()
+
+    def possible_requests(self) -> Tensor:
+        return self.requests(torch.zeros(1, len(self.places), 4))[0]
 
 
 class SidePickingScan(LineScan):
@@ -91,3 +99,10 @@ class SidePickingScan(LineScan):
         ux, uz = torch.where(straight, 0.0, ux), torch.where(straight, 1.0, uz)
         py = scan[:, (k - 1).clamp(min=0), 0]
         return torch.stack([py, ux, torch.zeros_like(ux), uz], -1)
+
+    def possible_requests(self) -> Tensor:
+        """The first pair leaning each way at the first place; at each later place, leaning each way or straight."""
+        first = [(self.places[0], ux, 1.0 - self.first_lean) for ux in (1.0, -1.0)]
+        later = [(py, ux, uz) for py in self.places[1:-1] for ux, uz in ((1.0, 1.0 - self.lean),
+                                                                         (-1.0, 1.0 - self.lean), (0.0, 1.0))]
+        return torch.tensor([(float(py), ux, 0.0, uz) for py, ux, uz in first + later])
