@@ -50,19 +50,32 @@ ROWS = {
     "choice_on_side_scan": ["side_scan.yaml", "parts/choice_on_scan.yaml", "parts/stable_rl.yaml",
                             "parts/touch_sets.yaml"],
 }
-POLICY = {"pcrn_fc": "GaussianPolicy", "pcrn_nclass": "GaussianPolicy", "lstm": "GaussianPolicy",
-          "random": "RandomProbes", "line_scan": "LineScan", "side_scan": "SidePickingScan",
-          "gaussian_on_side_scan": "GaussianPolicy", "planner_copy": "CandidateChoice"}
-HEAD = {"pcrn_nclass": "NClassClassifier", "lstm": "LinearClassifier"}
+# what each config sets, as the configs compose: a later one overrides an earlier one (set_by)
+POLICY = {"pcrn_fc.yaml": "GaussianPolicy", "pcrn_nclass.yaml": "GaussianPolicy", "lstm.yaml": "GaussianPolicy",
+          "random.yaml": "RandomProbes", "line_scan.yaml": "LineScan", "side_scan.yaml": "SidePickingScan",
+          "gaussian_on_side_scan.yaml": "GaussianPolicy", "planner_copy.yaml": "CandidateChoice",
+          "parts/choice_on_scan.yaml": "CandidateChoice"}
+WARMUP = {"gaussian_on_side_scan.yaml": "FollowPrior", "planner_copy.yaml": "ImitateTeacher",
+          "parts/choice_on_scan.yaml": "FollowPrior"}
+IMITATES = {"planner_copy.yaml": True, "parts/choice_on_scan.yaml": True}  # the warm-up copies a teacher or a scan
+HEAD = {"pcrn_nclass.yaml": "NClassClassifier", "lstm.yaml": "LinearClassifier"}
+ENCODER = {"lstm.yaml": "LSTMEncoder", "parts/centred_points.yaml": "CentredPCRN"}
+N_PROBES = {"planner_copy.yaml": 10}  # the planner's teachers have 10 probes (args_of); tiny.yaml's 4 otherwise
+STD_FINAL = {"gaussian_on_side_scan.yaml": 0.1, "planner_copy.yaml": 0.1}
+
+
+def set_by(parts: list[str], setting: dict, default=None):
+    """What the composition's configs set, the last of them that sets it winning, as in the CLI."""
+    return next((setting[part] for part in reversed(parts) if part in setting), default)
 
 
 def args_of(parts: list[str], *extra: str) -> list[str]:
     """The configs of a composition, smoke-sized (tiny last), with what a tiny run of it needs: the planner's
     teachers have 10 probes, and a warm-up of 2 of the 4 steps leaves 2 for the policy to learn in."""
     args = [a for part in [*parts, "parts/tiny.yaml"] for a in ("--config", str(CONFIGS / part))]
-    if parts[0] == "planner_copy.yaml":
+    if set_by(parts, WARMUP) == "ImitateTeacher":
         args += ["--data.n_probes", "10", "--model.warmup.init_args.teachers", json.dumps(TEACHERS)]
-    if parts[0] in ("planner_copy.yaml", "gaussian_on_side_scan.yaml") or "parts/choice_on_scan.yaml" in parts:
+    if set_by(parts, WARMUP):
         args += ["--model.warmup.init_args.steps", "2"]
     if "parts/library_classifier.yaml" in parts:
         args += ["--model.library_classifier.teacher", TEACHERS[0], "--model.library_classifier.episodes", "64"]
@@ -81,25 +94,21 @@ def test_composition_fits_and_tests_through_the_cli(row, tmp_path, monkeypatch):
     fit = cli(["fit", *args_of(parts, "--trainer.default_root_dir", str(root))])
     model, trainer = fit.model, fit.trainer
     # the components are the ones the configs name
-    base = parts[0].removesuffix(".yaml")
     touch_sets = "parts/touch_sets.yaml" in parts
-    n_probes = 10 if base == "planner_copy" else 4
+    n_probes = set_by(parts, N_PROBES, 4)
     repaired = "parts/new_touch.yaml" in parts
-    assert type(model.encoder).__name__ == ("LSTMEncoder" if base == "lstm" else
-                                            "CentredPCRN" if "parts/centred_points.yaml" in parts else "PCRN")
+    assert type(model.encoder).__name__ == set_by(parts, ENCODER, "PCRN")
     if repaired:
         assert model.policy.reads_detached and model.policy.count_width == n_probes
-    on_scan = "parts/choice_on_scan.yaml" in parts
-    assert type(model.policy).__name__ == ("CandidateChoice" if on_scan else POLICY[base])
-    if on_scan:
+    assert type(model.policy).__name__ == set_by(parts, POLICY)
+    if "parts/choice_on_scan.yaml" in parts:  # the scan the side-scan config names becomes the choice's prior
         assert type(model.policy.prior).__name__ == "SidePickingScan" and model.warmup.imitate
     heads = [type(h).__name__ for h in model.heads]
-    assert heads == ([HEAD.get(base, "FCClassifier")] + ["TouchSetClassifier"] * 2 * touch_sets)
+    assert heads == ([set_by(parts, HEAD, "FCClassifier")] + ["TouchSetClassifier"] * 2 * touch_sets)
     if touch_sets:
         assert [(h.mirror, h.last_only) for h in model.heads[1:]] == [(True, False), (True, True)]
     assert model.hparams.n_probes == n_probes == fit.datamodule.n_probes
-    assert type(model.warmup).__name__ == ("FollowPrior" if on_scan else {
-        "gaussian_on_side_scan": "FollowPrior", "planner_copy": "ImitateTeacher"}.get(base, "NoneType"))
+    assert type(model.warmup).__name__ == set_by(parts, WARMUP, "NoneType")
     stable = "parts/stable_rl.yaml" in parts
     assert (model.loss.reward, model.loss.normalize_advantage) == (("log_gain", True) if stable else
                                                                   ("new_touch" if repaired else "correct", False))
@@ -108,14 +117,14 @@ def test_composition_fits_and_tests_through_the_cli(row, tmp_path, monkeypatch):
     lr_final = 0.05 if {"parts/long.yaml", "parts/quickstart.yaml"} & set(parts) else 1.0
     callbacks = {type(c).__name__: c for c in trainer.callbacks}
     assert callbacks["CosineLR"].final_scale == lr_final
-    assert callbacks["StdDecay"].final_scale == (0.1 if base in ("gaussian_on_side_scan", "planner_copy") else 1.0)
+    assert callbacks["StdDecay"].final_scale == set_by(parts, STD_FINAL, 1.0)
     # it trained: 4 steps (tiny.yaml overrides the long schedules), validated at 2 and 4, saved what it resumes from
     assert trainer.global_step == 4 and (root / "checkpoints" / "last.ckpt").is_file()
     assert [row[0] for row in csv.reader((root / "val_curve.csv").open())] == ["step", "2", "4"]
     logged = trainer.callback_metrics
     if model.policy.learned:  # the policy learned by REINFORCE after any warm-up; the copy imitated before it
         assert torch.isfinite(logged["train/loss_policy"])
-        assert ("train/loss_imitation" in logged) == (base == "planner_copy" or on_scan)
+        assert ("train/loss_imitation" in logged) == set_by(parts, IMITATES, False)
     else:
         assert "train/loss_policy" not in logged
     if "parts/library_classifier.yaml" in parts:  # 64 training episodes, moved along the line and mirrored
