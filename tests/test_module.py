@@ -14,7 +14,9 @@ import numpy as np
 import pytest
 import pytorch_lightning as pl
 import torch
+import torch.nn.functional as F
 import yaml
+from torch import nn
 
 from hg.lightning import HapticGlance, ProbeDataModule
 from hg.lightning.cli import cli
@@ -140,18 +142,20 @@ def test_composition_fits_and_tests_through_the_cli(row, tmp_path, monkeypatch):
     for key, value in model.state_dict().items():
         torch.testing.assert_close(loaded.state_dict()[key], value, msg=key)
     # hg test of the last checkpoint: single-rollout accuracy after each probe, for the heads, the mean-action
-    # policy of a learned one, and the library classifier alone and mixed with the heads
+    # policy of a learned one, the same heads behind a learned policy's prior scan, and the library classifier alone
+    # and mixed with the heads
     test = cli(["test", *args_of(parts, "--trainer.default_root_dir", str(root)),
                 "--ckpt_path", str(root / "checkpoints" / "last.ckpt")])
     library = "parts/library_classifier.yaml" in parts
-    rollouts = ["stochastic", "mean_action"] if model.policy.learned else ["stochastic"]
+    on_prior = model.policy.learned and getattr(model.policy, "prior", None) is not None
+    rollouts = ["stochastic", *["mean_action"] * model.policy.learned, *["prior"] * on_prior]
     columns = [*rollouts, *(f"{r}_{who}" for who in ("library", "mixed") for r in rollouts if library)]
     table = list(csv.reader((root / "per_probe_accuracy.csv").open()))
     assert table[0] == ["probes", *columns] and len(table) == 1 + n_probes
     assert all(0 <= float(v) <= 1 for line in table[1:] for v in line[1:])
     metrics = test.trainer.callback_metrics
     for who in ["", *(["_library", "_mixed"] if library else [])]:
-        for suffix in ["", "_mean_action"] if model.policy.learned else [""]:
+        for suffix in ["", *["_mean_action"] * model.policy.learned, *["_prior"] * on_prior]:
             assert all(0 <= metrics[f"test/acc{who}{suffix}@{k}"] <= 1 for k in range(1, n_probes + 1))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
 
@@ -356,6 +360,46 @@ def test_warmup_trains_the_classifiers_behind_the_prior_scan_and_leaves_the_poli
     for earlier, later in zip([before, *states[:1]], states[:2]):
         assert moved(earlier, later, "heads.") and not moved(earlier, later, "policy.location.")
     assert moved(states[1], states[2], "policy.location.")
+
+
+
+class TouchCount(nn.Module):
+    """A head whose prediction follows what the probes found (how many touched, modulo the classes), untrained: the
+    accuracy it gives differs between two policies' probes, unlike an untrained network's, which names one class."""
+
+    last_only = False
+
+    def __init__(self, dims) -> None:
+        super().__init__()
+        self.n_classes = dims.n_classes
+
+    def forward(self, rep, points):
+        return F.one_hot(points[..., 3].cumsum(1).long() % self.n_classes, self.n_classes).float()
+
+
+def test_a_policy_on_a_prior_scan_is_also_scored_behind_the_scan(data):
+    """Validation scores a learned policy started on a prior scan twice with the same heads: behind its own probes
+    (acc) and behind the scan's (acc_prior), the comparison that says what its learned probes buy; a policy without
+    a prior is scored behind its own probes only."""
+    trainer = pl.Trainer(logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                         enable_model_summary=False, accelerator="cpu")
+    on_scan = make_model(data, policy=lambda dims: GaussianPolicy(dims, hidden=32, prior=LineScan), heads=[TouchCount])
+    data.setup("validate")
+    assert len(data.val_dataloader()) == 1  # one batch: the logged figures are this batch's
+    batch = next(iter(data.val_dataloader()))
+    labels, poses, seed = batch["labels"], batch["poses"], int(batch["seed"])
+
+    def accuracy(policy=None) -> list[float]:
+        rolled = on_scan.roll(labels, poses, seed, policy=policy)
+        return (on_scan.predict(rolled)[0].argmax(-1) == labels[:, None]).float().mean(0).tolist()
+
+    own, behind_scan = accuracy(), accuracy(on_scan.policy.prior)
+    assert own != behind_scan
+    logged = trainer.validate(on_scan, datamodule=data, verbose=False)[0]
+    assert [logged[f"val/acc@{k + 1}"] for k in range(4)] == pytest.approx(own)
+    assert [logged[f"val/acc_prior@{k + 1}"] for k in range(4)] == pytest.approx(behind_scan)
+    plain = trainer.validate(make_model(data), datamodule=data, verbose=False)[0]
+    assert "val/acc@4" in plain and not any(k.startswith("val/acc_prior") for k in plain)
 
 
 def test_imitation_warmup_probes_the_teachers_episodes_and_copies_them(tmp_path):

@@ -38,10 +38,11 @@ def run_dir(trainer: pl.Trainer) -> Path:
 
 def per_probe_table(metrics: dict, stage: str, n_probes: int) -> dict[str, list[float]]:
     """Columns of accuracy after probe k = 1..N found in logged metrics: the learned heads on stochastic and
-    mean-action rollouts and, with a library classifier (model.library_classifier), it alone and mixed with them."""
+    mean-action rollouts and behind the policy's prior scan (HapticGlance._eval_step) and, with a library classifier
+    (model.library_classifier), it alone and mixed with them."""
     columns = {}
     for who in ("", "_library", "_mixed"):
-        for rollout, suffix in (("stochastic", ""), ("mean_action", "_mean_action")):
+        for rollout, suffix in (("stochastic", ""), ("mean_action", "_mean_action"), ("prior", "_prior")):
             keys = [f"{stage}/acc{who}{suffix}@{k}" for k in range(1, n_probes + 1)]
             if all(k in metrics for k in keys):
                 columns[f"{rollout}{who}"] = [float(metrics[k]) for k in keys]

@@ -169,15 +169,20 @@ class HapticGlance(pl.LightningModule):
     # -- evaluation ----------------------------------------------------------------------------------
     def _eval_step(self, batch: dict[str, Tensor], stage: str) -> dict[bool, tuple[Rollout, Tensor]]:
         """Single-rollout accuracy after each probe: the stochastic policy, and for a learned policy also the
-        mean-action policy, each labelled; never an average over several rollouts. With a library classifier, its
-        accuracy alone (`acc_library`) and mixed with the heads (`acc_mixed`) too, under their own names. Returns
-        {deterministic: (rollout, logits)}, which callbacks (ProbeMaps) get as the step's outputs."""
+        mean-action policy, each labelled; never an average over several rollouts. A learned policy started on a
+        prior scan is also scored by the same heads behind that scan (`acc_prior`): what its learned probes buy over
+        the scan's, with the classifiers held equal. With a library classifier, its accuracy alone (`acc_library`)
+        and mixed with the heads (`acc_mixed`) too, under their own names. Returns {deterministic: (rollout,
+        logits)} of the policy's own rollouts, which callbacks (ProbeMaps) get as the step's outputs."""
         labels, seed, scored = batch["labels"], int(batch["seed"]), {}
-        variants = [("", False)] + ([("_mean_action", True)] if self.policy.learned else [])
-        for suffix, deterministic in variants:
-            rollout = self.roll(labels, batch["poses"], seed, deterministic=deterministic)
+        prior = getattr(self.policy, "prior", None) if self.policy.learned else None
+        variants = ([("", False, None)] + ([("_mean_action", True, None)] if self.policy.learned else [])
+                    + ([("_prior", False, prior)] if prior is not None else []))
+        for suffix, deterministic, probe_with in variants:
+            rollout = self.roll(labels, batch["poses"], seed, deterministic=deterministic, policy=probe_with)
             logits, _ = self.predict(rollout)
-            scored[deterministic] = (rollout, logits.detach())
+            if probe_with is None:
+                scored[deterministic] = (rollout, logits.detach())
             predictions = {"": logits}
             if self.library is not None:
                 named = self.library.name(rollout, self.hparams.point_scale)
