@@ -52,10 +52,11 @@ def run(base: list[str], override: str, seed: int, steps: int, val_episodes: int
     summary = {k: statistics.fmean(float(r[k]) for r in late if r.get(k)) for k in DIAGNOSTICS
                if any(r.get(k) for r in late)}
 
-    def column(name: str) -> list[float]:  # empty where the run logs no such column
+    def column(name: str) -> list[float]:  # an optional column: empty where the run logs none
         return [round(float(metrics[f"val/{name}@{k}"]), 4) for k in range(1, n + 1) if f"val/{name}@{k}" in metrics]
 
-    return {"val_accuracy": column("acc"), "val_accuracy_mean_action": column("acc_mean_action"),
+    return {"val_accuracy": [round(float(metrics[f"val/acc@{k}"]), 4) for k in range(1, n + 1)],
+            "val_accuracy_mean_action": column("acc_mean_action"),
             "val_accuracy_prior": column("acc_prior"),  # the same heads behind the policy's prior scan
             "val_touch_rate": round(float(metrics["val/touch_rate"]), 4),
             "train_late": {k: round(v, 4) for k, v in summary.items()}, "wall_s": round(time.time() - start, 1)}

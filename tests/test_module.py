@@ -59,10 +59,12 @@ POLICY = {"pcrn_fc.yaml": "GaussianPolicy", "pcrn_nclass.yaml": "GaussianPolicy"
           "parts/choice_on_scan.yaml": "CandidateChoice"}
 WARMUP = {"gaussian_on_side_scan.yaml": "FollowPrior", "planner_copy.yaml": "ImitateTeacher",
           "parts/choice_on_scan.yaml": "FollowPrior"}
-IMITATES = {"planner_copy.yaml": True, "parts/choice_on_scan.yaml": True}  # the warm-up copies a teacher or a scan
+IMITATES = {"gaussian_on_side_scan.yaml": False, "planner_copy.yaml": True,  # the warm-up copies a teacher or a scan
+            "parts/choice_on_scan.yaml": True}
+PRIOR = {"gaussian_on_side_scan.yaml": "SidePickingScan", "parts/choice_on_scan.yaml": "SidePickingScan"}
 HEAD = {"pcrn_nclass.yaml": "NClassClassifier", "lstm.yaml": "LinearClassifier"}
 ENCODER = {"lstm.yaml": "LSTMEncoder", "parts/centred_points.yaml": "CentredPCRN"}
-N_PROBES = {"planner_copy.yaml": 10}  # the planner's teachers have 10 probes (args_of); tiny.yaml's 4 otherwise
+N_PROBES = {"planner_copy.yaml": 10}  # its teachers' probes (args_of); tiny.yaml's 4 otherwise
 STD_FINAL = {"gaussian_on_side_scan.yaml": 0.1, "planner_copy.yaml": 0.1}
 
 
@@ -76,7 +78,8 @@ def args_of(parts: list[str], *extra: str) -> list[str]:
     teachers have 10 probes, and a warm-up of 2 of the 4 steps leaves 2 for the policy to learn in."""
     args = [a for part in [*parts, "parts/tiny.yaml"] for a in ("--config", str(CONFIGS / part))]
     if set_by(parts, WARMUP) == "ImitateTeacher":
-        args += ["--data.n_probes", "10", "--model.warmup.init_args.teachers", json.dumps(TEACHERS)]
+        args += ["--data.n_probes", str(set_by(parts, N_PROBES)), "--model.warmup.init_args.teachers",
+                 json.dumps(TEACHERS)]
     if set_by(parts, WARMUP):
         args += ["--model.warmup.init_args.steps", "2"]
     if "parts/library_classifier.yaml" in parts:
@@ -103,14 +106,14 @@ def test_composition_fits_and_tests_through_the_cli(row, tmp_path, monkeypatch):
     if repaired:
         assert model.policy.reads_detached and model.policy.count_width == n_probes
     assert type(model.policy).__name__ == set_by(parts, POLICY)
-    if "parts/choice_on_scan.yaml" in parts:  # the scan the side-scan config names becomes the choice's prior
-        assert type(model.policy.prior).__name__ == "SidePickingScan" and model.warmup.imitate
+    assert type(getattr(model.policy, "prior", None)).__name__ == set_by(parts, PRIOR, "NoneType")
     heads = [type(h).__name__ for h in model.heads]
     assert heads == ([set_by(parts, HEAD, "FCClassifier")] + ["TouchSetClassifier"] * 2 * touch_sets)
     if touch_sets:
         assert [(h.mirror, h.last_only) for h in model.heads[1:]] == [(True, False), (True, True)]
     assert model.hparams.n_probes == n_probes == fit.datamodule.n_probes
     assert type(model.warmup).__name__ == set_by(parts, WARMUP, "NoneType")
+    assert getattr(model.warmup, "imitate", False) == set_by(parts, IMITATES, False)
     stable = "parts/stable_rl.yaml" in parts
     assert (model.loss.reward, model.loss.normalize_advantage) == (("log_gain", True) if stable else
                                                                   ("new_touch" if repaired else "correct", False))
@@ -362,7 +365,6 @@ def test_warmup_trains_the_classifiers_behind_the_prior_scan_and_leaves_the_poli
     assert moved(states[1], states[2], "policy.location.")
 
 
-
 class TouchCount(nn.Module):
     """A head whose prediction follows what the probes found (how many touched, modulo the classes), untrained: the
     accuracy it gives differs between two policies' probes, unlike an untrained network's, which names one class."""
@@ -389,18 +391,41 @@ def test_a_policy_on_a_prior_scan_is_also_scored_behind_the_scan(data):
     batch = next(iter(data.val_dataloader()))
     labels, poses, seed = batch["labels"], batch["poses"], int(batch["seed"])
 
-    def accuracy(policy=None) -> list[float]:
-        rolled = on_scan.roll(labels, poses, seed, policy=policy)
+    def accuracy(rolled) -> list[float]:
         return (on_scan.predict(rolled)[0].argmax(-1) == labels[:, None]).float().mean(0).tolist()
 
-    own, behind_scan = accuracy(), accuracy(on_scan.policy.prior)
+    rolled = on_scan.roll(labels, poses, seed)
+    own, behind_scan = accuracy(rolled), accuracy(on_scan.roll(labels, poses, seed, policy=on_scan.policy.prior))
     assert own != behind_scan
+    handed = []
+
+    class Outputs(pl.Callback):  # what callbacks such as ProbeMaps get: the policy's own rollouts, not the scan's
+        def on_validation_batch_end(self, trainer, module, outputs, *args):
+            handed.append(outputs)
+
+    trainer.callbacks.append(Outputs())
     logged = trainer.validate(on_scan, datamodule=data, verbose=False)[0]
     assert [logged[f"val/acc@{k + 1}"] for k in range(4)] == pytest.approx(own)
     assert [logged[f"val/acc_prior@{k + 1}"] for k in range(4)] == pytest.approx(behind_scan)
+    assert sorted(handed[0]) == [False, True]
+    torch.testing.assert_close(handed[0][False][0].requests, rolled.requests)
     plain = trainer.validate(make_model(data), datamodule=data, verbose=False)[0]
     assert "val/acc@4" in plain and not any(k.startswith("val/acc_prior") for k in plain)
 
+
+
+def test_a_curve_begun_by_code_that_scored_fewer_columns_is_continued(tmp_path):
+    """A run resumed by newer code that scores more columns (acc_prior) keeps its learning curve: the earlier rows
+    stay, blank in the new columns, and the new ones follow."""
+    root = tmp_path / "run"
+    root.mkdir()
+    old = ["step", *(f"{label}@{k}" for label in ("stochastic", "mean_action") for k in range(1, 5))]
+    (root / "val_curve.csv").write_text(",".join(old) + "\n" + ",".join(["1", *["0.5"] * 8]) + "\n")
+    cli(["fit", *args_of(ROWS["gaussian_on_side_scan"], "--trainer.default_root_dir", str(root))])
+    curve = list(csv.reader((root / "val_curve.csv").open()))
+    assert curve[0] == [*old, *(f"prior@{k}" for k in range(1, 5))]
+    assert [row[0] for row in curve[1:]] == ["1", "2", "4"]
+    assert curve[1][1:] == ["0.5"] * 8 + [""] * 4 and all(v != "" for v in curve[2][1:])
 
 def test_imitation_warmup_probes_the_teachers_episodes_and_copies_them(tmp_path):
     """ImitateTeacher(2): the first steps probe the teacher's episodes in turn with its requests, the policy learning

@@ -99,10 +99,12 @@ class PerProbeAccuracy(pl.Callback):
         path = run_dir(trainer) / "val_curve.csv"
         step = trainer.global_step
         rows = list(csv.reader(path.open())) if path.is_file() else []
-        # a resumed run continues its curve (dropping steps it validates again); another run's curve found there
-        # (runs without a logger share the root folder) is replaced, never mixed in
-        continued = len(rows) > 1 and rows[0] == header and int(rows[1][0]) < step
-        rows = [header, *(r for r in rows[1:] if int(r[0]) < step)] if continued else [header]
+        # a resumed run continues its curve (dropping steps it validates again), also when newer code scores more
+        # columns (blank in its earlier rows); another run's curve found there (runs without a logger share the root
+        # folder) is replaced, never mixed in
+        continued = len(rows) > 1 and header[:len(rows[0])] == rows[0] and int(rows[1][0]) < step
+        blank = [""] * (len(header) - len(rows[0])) if continued else []
+        rows = [header, *(r + blank for r in rows[1:] if int(r[0]) < step)] if continued else [header]
         rows.append([str(step), *(f"{v:.4f}" for values in columns.values() for v in values)])
         text = io.StringIO()
         csv.writer(text).writerows(rows)
@@ -122,7 +124,12 @@ class PerProbeAccuracy(pl.Callback):
         writer.writerows(rows)
         write_atomic(folder / "per_probe_accuracy.csv", text.getvalue())
         plot_path = folder / "per_probe_accuracy.png"
-        write_atomic(plot_path, accuracy_plot({f"{type(pl_module.policy).__name__} ({label} rollout)": values
+        policy = pl_module.policy
+
+        def prober(label: str) -> str:  # the prior columns are the scan's probes
+            return type(policy.prior if label.startswith("prior") else policy).__name__
+
+        write_atomic(plot_path, accuracy_plot({f"{prober(label)} ({label} rollout)": values
                                                for label, values in columns.items()}))
         if isinstance(trainer.logger, WandbLogger):
             trainer.logger.log_table("test/per_probe_accuracy", columns=["probes", *columns], data=rows)

@@ -175,7 +175,7 @@ class HapticGlance(pl.LightningModule):
         and mixed with the heads (`acc_mixed`) too, under their own names. Returns {deterministic: (rollout,
         logits)} of the policy's own rollouts, which callbacks (ProbeMaps) get as the step's outputs."""
         labels, seed, scored = batch["labels"], int(batch["seed"]), {}
-        prior = getattr(self.policy, "prior", None) if self.policy.learned else None
+        prior = self.policy.prior if self.policy.learned else None
         variants = ([("", False, None)] + ([("_mean_action", True, None)] if self.policy.learned else [])
                     + ([("_prior", False, prior)] if prior is not None else []))
         for suffix, deterministic, probe_with in variants:

@@ -63,6 +63,7 @@ class LearnedPolicy(Policy):
     def __init__(self, state_dim: int, reads_detached: bool) -> None:
         super().__init__()
         self.reads_detached = reads_detached  # beyond the paper: REINFORCE kept out of the encoder
+        self.prior: Policy | None = None  # a scan the policy starts on (set by a subclass that takes one)
         self.baseline = Baseline(state_dim)  # b_k reads the state s_k the policy reads
 
     @property

@@ -51,6 +51,9 @@ class CandidateChoice(LearnedPolicy):
         """Refuse, when built, a prior scan that can make a request the choice cannot copy."""
         try:
             self.location.index_of(self.prior.possible_requests())
+        except NotImplementedError:
+            raise ValueError(f"model.policy.init_args.prior: {type(self.prior).__name__} does not list the requests it "
+                             "can make (Scan.possible_requests), so a choice cannot be checked to copy it") from None
         except ValueError as error:
             raise ValueError(f"model.policy.init_args.prior: {type(self.prior).__name__}: {error} of CandidateChoice("
                              f"places={self.grid['places']}, span={self.grid['span']}, leans={self.grid['leans']}); "
