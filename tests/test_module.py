@@ -150,7 +150,7 @@ def test_composition_fits_and_tests_through_the_cli(row, tmp_path, monkeypatch):
     test = cli(["test", *args_of(parts, "--trainer.default_root_dir", str(root)),
                 "--ckpt_path", str(root / "checkpoints" / "last.ckpt")])
     library = "parts/library_classifier.yaml" in parts
-    on_prior = model.policy.learned and getattr(model.policy, "prior", None) is not None
+    on_prior = set_by(parts, PRIOR) is not None  # a learned policy's, as asserted above
     rollouts = ["stochastic", *["mean_action"] * model.policy.learned, *["prior"] * on_prior]
     columns = [*rollouts, *(f"{r}_{who}" for who in ("library", "mixed") for r in rollouts if library)]
     table = list(csv.reader((root / "per_probe_accuracy.csv").open()))

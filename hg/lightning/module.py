@@ -175,9 +175,11 @@ class HapticGlance(pl.LightningModule):
         and mixed with the heads (`acc_mixed`) too, under their own names. Returns {deterministic: (rollout,
         logits)} of the policy's own rollouts, which callbacks (ProbeMaps) get as the step's outputs."""
         labels, seed, scored = batch["labels"], int(batch["seed"]), {}
-        prior = self.policy.prior if self.policy.learned else None
-        variants = ([("", False, None)] + ([("_mean_action", True, None)] if self.policy.learned else [])
-                    + ([("_prior", False, prior)] if prior is not None else []))
+        variants = [("", False, None)]  # (metric suffix, deterministic, the policy probing instead of the model's)
+        if self.policy.learned:
+            variants.append(("_mean_action", True, None))
+            if self.policy.prior is not None:
+                variants.append(("_prior", False, self.policy.prior))
         for suffix, deterministic, probe_with in variants:
             rollout = self.roll(labels, batch["poses"], seed, deterministic=deterministic, policy=probe_with)
             logits, _ = self.predict(rollout)
