@@ -1,5 +1,7 @@
 """hg.sweep on a local Ray instance: a job waits for the jobs it names, a failing or silent job fails alone, each log
-names the Ray task that ran it; a job waiting for a later one, or named twice, is refused before Ray starts."""
+names the Ray task that ran it, and a job runs at the sweep's niceness; a job waiting for a later one, or named twice,
+is refused before Ray starts."""
+import os
 import sys
 
 import pytest
@@ -17,11 +19,13 @@ def test_jobs_run_as_ray_tasks_in_order_and_fail_alone(tmp_path, capsys):
                 tmp_path / "logs" / "first.txt", done["first"]),
             Job("broken", python("sys.exit(3)"), tmp_path / "logs" / "broken.txt", done["broken"]),
             Job("second", python(f"assert pathlib.Path({str(done['first'])!r}).is_file(); "
-                                 f"pathlib.Path({str(done['second'])!r}).write_text(os.environ['ASKED'])"),
+                                 f"pathlib.Path({str(done['second'])!r}).write_text(os.environ['ASKED'] + "
+                                 "str(os.nice(0)))"),
                 tmp_path / "logs" / "second.txt", done["second"], {"ASKED": "yes"}, after=("first",)),
             Job("silent", python("pass"), tmp_path / "logs" / "silent.txt", done["silent"])]
     assert run_jobs(jobs, cpus_per_job=1, at_once=2, cwd=tmp_path) == 2  # broken and silent
-    assert done["second"].read_text() == "yes"  # it ran after first, with its environment
+    # it ran after first, with its environment, at the sweep's niceness (not Ray's +15 for its workers)
+    assert done["second"].read_text() == f"yes{os.nice(0)}"
     out = capsys.readouterr().out
     assert "4 jobs on a local Ray instance (num_cpus=2), each a task of num_cpus=1" in out
     assert "broken: FAILED (exit 3), see " in out and "silent: stopped before writing silent.done, see " in out
