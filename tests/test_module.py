@@ -194,11 +194,10 @@ class Schedules(pl.Callback):
         self.lr.append([group["lr"] for group in optimizer.param_groups])
 
 
-def schedules(tmp_path, steps: int, warmup: int, std_start: float = 1.0) -> Schedules:
+def schedules(tmp_path, steps: int, warmup: int) -> Schedules:
     run = cli(args_of(ROWS["gaussian_row"], "--trainer.default_root_dir", str(tmp_path), "--trainer.max_steps",
                       str(steps), "--trainer.val_check_interval", str(steps), "--model.warmup.init_args.steps",
-                      str(warmup), "--std_decay.final_scale", "0.1", "--std_decay.start_scale", str(std_start),
-                      "--lr_decay.final_scale", "0.05"), run=False)
+                      str(warmup), "--std_decay.final_scale", "0.1", "--lr_decay.final_scale", "0.05"), run=False)
     record = Schedules()
     run.trainer.callbacks.append(record)
     run.trainer.fit(run.model, datamodule=run.datamodule)
@@ -227,22 +226,12 @@ def test_std_and_lr_schedules_reach_their_final_scale_at_the_last_step(tmp_path)
     assert record.lr[-1][0] == pytest.approx(1e-3 * 0.05)
 
 
-def test_a_warm_start_raises_the_std_from_the_policys_start_only(tmp_path):
-    """A policy that copied a scan in its warm-up is warmed when it starts learning, not while it copies (a copy
-    learned at a higher temperature would only be that much sharper), then cools to the final std."""
-    record = schedules(tmp_path, 6, 2, std_start=3.0)
-    assert record.std[:2] == [1.0, 1.0]
-    np.testing.assert_allclose(record.std[2:], np.linspace(3.0, 0.1, 4))
-
-
 def test_schedules_need_an_end(tmp_path):
     with pytest.raises(ValueError, match="std_decay.final_scale needs trainer.max_steps"):
         cli(["fit", *args_of(ROWS["gaussian_row"], "--trainer.max_steps", "-1", "--trainer.max_epochs", "1",
                              "--trainer.default_root_dir", str(tmp_path))])
     with pytest.raises(ValueError, match="std_decay.final_scale=0"):
         cli(args_of(ROWS["gaussian_row"], "--std_decay.final_scale", "0"), run=False)
-    with pytest.raises(ValueError, match=r"std_decay.start_scale=0.05: must be >= final_scale \(0.1\)"):
-        cli(args_of(ROWS["gaussian_row"], "--std_decay.start_scale", "0.05"), run=False)
     with pytest.raises(ValueError, match="lr_decay.final_scale=2"):
         cli(args_of(ROWS["pcrn_fc"], "--lr_decay.final_scale", "2"), run=False)
 

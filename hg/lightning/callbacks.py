@@ -255,32 +255,23 @@ def schedule_end(trainer: pl.Trainer, name: str) -> int:
 
 
 class StdDecay(pl.Callback):
-    """Beyond the paper: the learned policy's std (a choice's temperature) falls linearly from `start_scale` of its
-    learned value when the policy starts learning (after any warm-up) to `final_scale` at the last step, so that the
-    policy explores early and the classifier ends up trained behind the steady probes it is tested with. 1 and 1: no
-    schedule. A `start_scale` above 1 warms a policy that copied a scan in its warm-up (at its learned value, 1 until
-    then: a copy learned at a higher temperature would only be that much sharper) so that it tries other probes."""
+    """Beyond the paper: the learned policy's std (a choice's temperature) falls linearly from 1 when the policy
+    starts learning (after any warm-up) to `final_scale` of its learned value at the last step, so that the policy
+    explores early and the classifier ends up trained behind the steady probes it is tested with. 1: no decay."""
 
-    def __init__(self, final_scale: float = 1.0, start_scale: float = 1.0) -> None:
+    def __init__(self, final_scale: float = 1.0) -> None:
         if not 0.0 < final_scale <= 1.0:
             raise ValueError(f"std_decay.final_scale={final_scale}: must be in (0, 1]")
-        if not start_scale >= final_scale:
-            raise ValueError(f"std_decay.start_scale={start_scale}: must be >= final_scale ({final_scale})")
-        self.final_scale, self.start_scale = final_scale, start_scale
+        self.final_scale = final_scale
 
     def scale(self, step: int, start: int, last: int) -> float:
-        """The factor at training step `step` (0-based): 1 before `start`, then `start_scale` at `start` falling to
-        `final_scale` at `last`, the last training step, with which the model is then tested. A run ending within
-        the warm-up is at the final std."""
-        if last <= start:
-            return self.final_scale
-        if step < start:
-            return 1.0
-        progress = min((step - start) / (last - start), 1.0)
-        return self.start_scale + (self.final_scale - self.start_scale) * progress
+        """The factor at training step `step` (0-based) of steps start..last: 1 at `start`, final at `last`, the last
+        training step, with which the model is then tested. A run ending within the warm-up is at the final std."""
+        progress = min(max((step - start) / (last - start), 0.0), 1.0) if last > start else 1.0
+        return 1.0 + (self.final_scale - 1.0) * progress
 
     def on_train_batch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule, batch, batch_idx: int) -> None:
-        if (self.final_scale, self.start_scale) != (1.0, 1.0) and pl_module.policy.learned:
+        if self.final_scale != 1.0 and pl_module.policy.learned:
             last = schedule_end(trainer, "std_decay") - 1  # the last training step
             pl_module.policy.std_scale.fill_(self.scale(trainer.global_step, pl_module.policy_start, last))
 
