@@ -80,7 +80,8 @@ def start_ray(address: str | None, cpus: int) -> str:
         ray.init(address=address, **quiet)
         return f"the Ray cluster at {address}"
     # Ray raises its workers' niceness by 15 (19 under a sweep at nice 5), so any other work on the machine starved
-    # the runs; a local instance's workers keep the sweep's own niceness instead (set it with `nice`)
+    # the runs; a local instance's workers keep the sweep's own niceness instead (set it with `nice`), unless the
+    # user set Ray's variable
     os.environ.setdefault("RAY_worker_niceness", "0")
     ray.init(address="local", num_cpus=cpus, object_store_memory=OBJECT_STORE_BYTES, **quiet)
     return f"a local Ray instance (num_cpus={cpus})"

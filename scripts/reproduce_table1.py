@@ -448,9 +448,10 @@ def targets(table: dict[str, dict]) -> list[str]:
                          f"predicted by '{prediction}' over as many probes).")
             continue
         gap = table[mine]["accuracy"][-1] - table[other]["accuracy"][-1]
-        lines.append(f"- Beats {label} by >= 0.15 after its last probe, both predicted by '{prediction}' parts (the "
-                     f"two rows' heads may differ): {'met' if gap >= 0.15 else 'not met'} ({gap:+.3f}, "
-                     f"{table[mine]['label']}).")
+        read_by = ("both predicted by learned heads (the two rows' heads may differ)" if prediction == "learned"
+                   else f"the same classifier ('{prediction}') reading both")
+        lines.append(f"- Beats {label} by >= 0.15 after its last probe, {read_by}: "
+                     f"{'met' if gap >= 0.15 else 'not met'} ({gap:+.3f}, {table[mine]['label']}).")
     if "lstm" in table and len(table["lstm"]["accuracy"]) == n:
         lost = [k for k in range(3, n + 1) if acc[k - 1] <= table["lstm"]["accuracy"][k - 1]]
         lines.append("- Beats the LSTM at every probe count from 3 on: " + ("met." if not lost else f"not met at {lost}."))

@@ -333,12 +333,13 @@ def test_merge_chooses_on_validation_compares_like_with_like_and_refuses_mixed_o
     text = (tmp_path / "table1.md").read_text()
     assert "(highest mean validation accuracy after 10 probes, 0.800): a choice among the greedy planner's" in text
     assert "After 10 probes >= 0.95: not met (0.700, -0.250)." in text
-    # the margins over probes placed by no one are read between rows predicted by the same kind of parts
+    # the margins over probes placed by no one: between learned heads, which may differ from row to row, or read
+    # by the same library classifier on both sides
     assert "Beats side-picking scan + mirrored touch-set classifiers (fixed probes) by >= 0.15 after its last probe, " \
-           "both predicted by 'learned' parts (the two rows' heads may differ): met (+0.200" in text
+           "both predicted by learned heads (the two rows' heads may differ): met (+0.200" in text
     assert "Beats random candidates of the planner, named by planner_copy's library classifier (no learning) by >= " \
-           "0.15 after its last probe, both predicted by 'library' parts (the two rows' heads may differ): met (+0.200, " \
-           "planner_copy's probes, named by the library classifier alone)." in text
+           "0.15 after its last probe, the same classifier ('library') reading both: met (+0.200, planner_copy's " \
+           "probes, named by the library classifier alone)." in text
     assert "| random probes + PCRN-FC | learned | random | 2 | 0.250 +- 0.071 |" in text
     assert "Beats the LSTM at every probe count from 3 on: not met at [3, 4, 5, 6, 7, 8, 9, 10]." in text
     # records the table must not take: another test set, a row defined otherwise, a split other than test
