@@ -458,6 +458,31 @@ def targets(table: dict[str, dict]) -> list[str]:
     return lines
 
 
+def second_set_targets(table: dict[str, dict]) -> list[str]:
+    """#56's targets on an object set other than hg4, after the last probe: the learned policy with a learned
+    prediction that reads best on validation above every fixed scan by >= 0.05, and within 0.03 of the planner."""
+    learned = [row for row in table if ROWS[row].probes == "learned" and ROWS[row].prediction == "learned"]
+    complete = [row for row in learned if len(table[row]["seeds"]) >= len(SEEDS)]
+    if not learned:
+        return ["- No learned policy with a learned prediction yet: no target read."]
+    best = max(complete or learned, key=lambda row: table[row].get("best_val_acc", -1.0))
+    mine, n = table[best]["accuracy"][-1], len(table[best]["accuracy"])
+    lines = [f"- Best learned policy with a learned prediction (highest mean validation accuracy after {n} probes"
+             f"{' among the rows with all seeds' if complete else ''}): {table[best]['label']}, "
+             f"{len(table[best]['seeds'])} seeds, {mine:.3f}."]
+    for probes, goal, says in (("fixed", 0.05, "Above every fixed scan by >= 0.05"),
+                               ("planner", -0.03, "Within 0.03 of the planner")):
+        others = [row for row in table if ROWS[row].probes == probes and not ROWS[row].cloud]
+        if not others:
+            lines.append(f"- {says} after {n} probes: not compared (no such row yet).")
+            continue
+        other = max(others, key=lambda row: table[row]["accuracy"][-1])
+        gap = mine - table[other]["accuracy"][-1]
+        lines.append(f"- {says} after {n} probes: {'met' if gap >= goal else 'not met'} ({gap:+.3f} against "
+                     f"{table[other]['label']}).")
+    return lines
+
+
 def cell(entry: dict, key: str, k: int) -> str:
     """Mean +- std after probe k over the seeds (the mean alone for one seed); empty where not measured."""
     if key not in entry or k > len(entry[key]):
@@ -533,6 +558,8 @@ def markdown(table: dict[str, dict], merged_at: str, test_episodes: int, objects
     lines += ["", "With two jobs in parallel each trains on one torch thread. A run resumed after an interruption "
               "counts every attempt's training time up to its last checkpoint (`hg.lightning.callbacks.TrainingClock`).",
               "", "## Targets (issue #4)", "", *targets(table), ""]
+    if objects != "hg4":
+        lines += ["## Targets on this second object set (issue #56)", "", *second_set_targets(table), ""]
     return "\n".join(lines)
 
 
