@@ -410,11 +410,13 @@ def summarise(runs: dict[str, list[dict]]) -> dict[str, dict]:
     return table
 
 
-def best_variant(table: dict[str, dict], prediction: Prediction | None = None) -> str | None:
-    """The PCRN row with a learned policy (of that prediction, if given) with the highest mean validation accuracy
-    after the last probe: chosen on val, never on the test episodes the table reports, and among the rows that have
-    all their seeds when any has (one lucky seed must not outrank a mean over three)."""
-    rows = [row for row in table if ROWS[row].probes == "learned" and encoder_of(row) == "hg.nets.PCRN"
+def best_variant(table: dict[str, dict], prediction: Prediction | None = None,
+                 encoder: str | None = "hg.nets.PCRN") -> str | None:
+    """The row with a learned policy (of that prediction and encoder, if given; PCRN's by default) with the highest
+    mean validation accuracy after the last probe: chosen on val, never on the test episodes the table reports, and
+    among the rows that have all their seeds when any has (one lucky seed must not outrank a mean over three)."""
+    rows = [row for row in table if ROWS[row].probes == "learned"
+            and (encoder is None or encoder_of(row) == encoder)
             and (prediction is None or ROWS[row].prediction == prediction)]
     complete = [row for row in rows if len(table[row]["seeds"]) >= len(SEEDS)]
     return max(complete or rows, key=lambda row: table[row].get("best_val_acc", -1.0)) if rows else None
@@ -461,15 +463,13 @@ def targets(table: dict[str, dict]) -> list[str]:
 def second_set_targets(table: dict[str, dict]) -> list[str]:
     """#56's targets on an object set other than hg4, after the last probe: the learned policy with a learned
     prediction that reads best on validation above every fixed scan by >= 0.05, and within 0.03 of the planner."""
-    learned = [row for row in table if ROWS[row].probes == "learned" and ROWS[row].prediction == "learned"]
-    complete = [row for row in learned if len(table[row]["seeds"]) >= len(SEEDS)]
-    if not learned:
+    best = best_variant(table, "learned", encoder=None)
+    if best is None:
         return ["- No learned policy with a learned prediction yet: no target read."]
-    best = max(complete or learned, key=lambda row: table[row].get("best_val_acc", -1.0))
-    mine, n = table[best]["accuracy"][-1], len(table[best]["accuracy"])
+    mine, n, seeds = table[best]["accuracy"][-1], len(table[best]["accuracy"]), len(table[best]["seeds"])
     lines = [f"- Best learned policy with a learned prediction (highest mean validation accuracy after {n} probes"
-             f"{' among the rows with all seeds' if complete else ''}): {table[best]['label']}, "
-             f"{len(table[best]['seeds'])} seeds, {mine:.3f}."]
+             f"{' among the rows with all seeds' if seeds >= len(SEEDS) else ''}): {table[best]['label']}, "
+             f"{seeds} seeds, {mine:.3f}."]
     for probes, goal, says in (("fixed", 0.05, "Above every fixed scan by >= 0.05"),
                                ("planner", -0.03, "Within 0.03 of the planner")):
         others = [row for row in table if ROWS[row].probes == probes and not ROWS[row].cloud]
