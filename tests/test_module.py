@@ -21,8 +21,8 @@ from torch import nn
 from hg.lightning import HapticGlance, ProbeDataModule
 from hg.lightning.cli import cli
 from hg.nets import PCRN, FCClassifier, TouchSetClassifier
-from hg.policies import GaussianPolicy, LineScan
-from hg.rl import FollowPrior
+from hg.policies import CandidateChoice, GaussianPolicy, LineScan, SidePickingScan
+from hg.rl import ExploreAroundPrior, FollowPrior
 from hg.sim import ProbeSimulator, Scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -51,6 +51,8 @@ ROWS = {
     "pcrn_nclass_repaired": ["pcrn_nclass.yaml", "parts/centred_points.yaml", "parts/new_touch.yaml"],
     "choice_on_side_scan": ["side_scan.yaml", "parts/choice_on_scan.yaml", "parts/stable_rl.yaml",
                             "parts/touch_sets.yaml"],
+    "exploring_choice_on_side_scan": ["side_scan.yaml", "parts/choice_on_scan.yaml", "parts/explore_copy.yaml",
+                                      "parts/stable_rl.yaml", "parts/touch_sets.yaml"],
 }
 # what each config sets, as the configs compose: a later one overrides an earlier one (set_by)
 POLICY = {"pcrn_fc.yaml": "GaussianPolicy", "pcrn_nclass.yaml": "GaussianPolicy", "lstm.yaml": "GaussianPolicy",
@@ -58,9 +60,9 @@ POLICY = {"pcrn_fc.yaml": "GaussianPolicy", "pcrn_nclass.yaml": "GaussianPolicy"
           "gaussian_on_side_scan.yaml": "GaussianPolicy", "planner_copy.yaml": "CandidateChoice",
           "parts/choice_on_scan.yaml": "CandidateChoice"}
 WARMUP = {"gaussian_on_side_scan.yaml": "FollowPrior", "planner_copy.yaml": "ImitateTeacher",
-          "parts/choice_on_scan.yaml": "FollowPrior"}
+          "parts/choice_on_scan.yaml": "FollowPrior", "parts/explore_copy.yaml": "ExploreAroundPrior"}
 IMITATES = {"gaussian_on_side_scan.yaml": False, "planner_copy.yaml": True,  # the warm-up copies a teacher or a scan
-            "parts/choice_on_scan.yaml": True}
+            "parts/choice_on_scan.yaml": True, "parts/explore_copy.yaml": True}
 PRIOR = {"gaussian_on_side_scan.yaml": "SidePickingScan", "parts/choice_on_scan.yaml": "SidePickingScan"}
 HEAD = {"pcrn_nclass.yaml": "NClassClassifier", "lstm.yaml": "LinearClassifier"}
 ENCODER = {"lstm.yaml": "LSTMEncoder", "parts/centred_points.yaml": "CentredPCRN"}
@@ -259,6 +261,9 @@ def test_the_touch_reward_trains_through_a_warm_up_and_pays_the_contacts(tmp_pat
     ("choice_on_side_scan", ["--model.warmup.init_args.imitate", "false"],
      r"model.policy.init_args.prior: CandidateChoice starts on its prior scan only by copying it"),
     ("choice_on_side_scan", ["--model.warmup", "null"], r"model.policy.init_args.prior: CandidateChoice starts on"),
+    ("gaussian_on_side_scan", ["--model.warmup", "hg.rl.ExploreAroundPrior"],
+     r"model.warmup: ExploreAroundPrior draws its detours among the policy's candidates; GaussianPolicy has none"),
+    ("exploring_choice_on_side_scan", ["--model.warmup.init_args.explore", "0"], r"warmup.explore=0.0: .* \(0, 1\]"),
     pytest.param("pcrn_fc", ["--config", str(CONFIGS / "parts" / "library_classifier.yaml"),
                              "--model.library_classifier.teacher", TEACHERS[0]], "model.library_classifier",
                  ),
@@ -363,6 +368,35 @@ def test_warmup_trains_the_classifiers_behind_the_prior_scan_and_leaves_the_poli
     for earlier, later in zip([before, *states[:1]], states[:2]):
         assert moved(earlier, later, "heads.") and not moved(earlier, later, "policy.location.")
     assert moved(states[1], states[2], "policy.location.")
+
+
+def test_an_exploring_copy_probes_off_the_scan_and_copies_what_the_scan_would_ask(data):
+    """ExploreAroundPrior: some probes are candidates the scan did not ask for, never one probed already; the choice
+    learns to ask for the scan's request after what was really probed, except where that request was probed
+    already (a choice never probes twice)."""
+    warmup = ExploreAroundPrior(2, explore=0.5)
+    scan = lambda dims: SidePickingScan(dims, span=0.5, lean=0.6, first_lean=1.0)  # noqa: E731
+    model = make_model(data, policy=lambda dims: CandidateChoice(dims, places=None, leans=(0.6, 1.0), hidden=32,
+                                                                 prior=scan), warmup=warmup)
+    batch = first_batch(data)
+    rollout = model.roll(batch["labels"], batch["poses"], int(batch["seed"]), policy=warmup.prober(model.policy))
+    wanted = model.policy.prior.requests(rollout.points)
+    index = model.policy.location.index_of(rollout.actions)  # every request is a candidate (or this refuses)
+    detour = (rollout.actions - wanted).abs().amax(-1) > 1e-6
+    assert 0 < detour.sum() < detour.numel()
+    earlier = torch.ones(4, 4, dtype=torch.bool).tril(-1)
+    probed_before = ((index[:, :, None] == index[:, None, :]) & earlier).any(-1)
+    assert not probed_before[detour].any()
+    # the targets are the scan's requests after the rollout's points; one the rollout sent earlier is left out
+    rollout.actions[:, 0] = wanted[:, 2]  # what the scan asks for third, sent first: its third is not copied
+    targets, valid = warmup.targets(model.policy, rollout)
+    assert torch.equal(targets, wanted) and not valid[:, 2].any() and valid[:, 0].all()
+    terms, _ = model.evaluate(rollout, batch["labels"], "imitate")
+    rep = model.encoder(rollout.requests, rollout.points)
+    log_pi = model.policy.evaluate(rep, rollout.actions, rollout.points, chosen=targets).log_pi
+    torch.testing.assert_close(terms["loss_imitation"], -log_pi[valid].mean())
+    assert torch.isfinite(terms["loss"]) and reaches(model, terms["loss_imitation"])["location"]
+    model.sim.close()
 
 
 class TouchCount(nn.Module):

@@ -128,8 +128,11 @@ class HapticGlance(pl.LightningModule):
             terms = self.loss(logits, labels, points=rollout.points)
         if evaluated is not None:
             extra = dict(evaluated.losses)
-            if regime == "imitate":
-                extra["loss_imitation"] = self.policy.imitation_loss(evaluated, rollout.actions)
+            if regime == "imitate":  # what the warm-up would ask for in these states; by default what it sent
+                targets, valid = self.warmup.targets(self.policy, rollout) if self.warmup else (rollout.actions, None)
+                copied = evaluated if targets is rollout.actions else self.policy.evaluate(
+                    rep, rollout.actions, rollout.points, chosen=targets)
+                extra["loss_imitation"] = self.policy.imitation_loss(copied, targets, valid)
             terms |= evaluated.stats | extra
             terms["loss"] = terms["loss"] + sum(extra.values())
         return terms, logits

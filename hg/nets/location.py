@@ -161,11 +161,17 @@ class LocationNetwork(PolicyState):
             log_p = log_p - torch.log((normal.cdf(torch.ones_like(mu)) - normal.cdf(-torch.ones_like(mu))).clamp_min(1e-12))
         return log_p.sum(-1), mu, sigma
 
-    def imitation_loss(self, log_pi: Tensor, mu: Tensor, action: Tensor) -> Tensor:
+    def imitation_loss(self, log_pi: Tensor, mu: Tensor, action: Tensor, valid: Tensor | None = None) -> Tensor:
         """How far the policy is from a teacher's requests: the mean's squared distance from them, whose gradient
         stays on the cross-entropy's scale, where their log-likelihood under a narrow std would crowd the classifier
         out of the clipped gradient."""
-        return (mu - action.clamp(-1, 1)).pow(2).sum(-1).mean()
+        return valid_mean((mu - action.clamp(-1, 1)).pow(2).sum(-1), valid)
+
+
+def valid_mean(values: Tensor, valid: Tensor | None) -> Tensor:
+    """The mean of `values` over the True entries of `valid` (all when None): a teacher's request the policy may not
+    make (a candidate probed already, log pi = -inf) is left out of the imitation, not averaged in."""
+    return values.mean() if valid is None else values[valid].mean()
 
 
 def candidate_index(action: Tensor, candidates: Tensor) -> Tensor:
@@ -248,6 +254,6 @@ class CandidateLocationNetwork(PolicyState):
         log_pi = log_probs.gather(-1, self.index_of(action)[..., None])[..., 0]
         return (log_pi, *self.moments(log_probs))
 
-    def imitation_loss(self, log_pi: Tensor, mu: Tensor, action: Tensor) -> Tensor:
+    def imitation_loss(self, log_pi: Tensor, mu: Tensor, action: Tensor, valid: Tensor | None = None) -> Tensor:
         """How far the policy is from a teacher's choices: their cross-entropy."""
-        return -log_pi.mean()
+        return -valid_mean(log_pi, valid)

@@ -71,14 +71,17 @@ class LearnedPolicy(Policy):
         """The factor on the policy's spread (a std, or a choice's temperature) a schedule may shrink."""
         return self.location.std_scale
 
-    def evaluate(self, rep: Tensor, actions: Tensor, points: Tensor) -> PolicyEval:
+    def evaluate(self, rep: Tensor, actions: Tensor, points: Tensor, chosen: Tensor | None = None) -> PolicyEval:
         """log pi of the requests `actions` (B, N, 4) that produced `points` (B, N, 4), from the encoder's
-        representation after each probe rep (B, N, D), in one pass (teacher forcing)."""
+        representation after each probe rep (B, N, D), in one pass (teacher forcing). `chosen` (B, N, 4): take log pi
+        of these requests instead, in the states the sent ones led to (a teacher's would-be requests, which an
+        exploring warm-up did not always send)."""
         raise NotImplementedError
 
-    def imitation_loss(self, evaluated: PolicyEval, actions: Tensor) -> Tensor:
-        """How far the policy is from a teacher who sent `actions` (B, N, 4)."""
-        return self.location.imitation_loss(evaluated.log_pi, evaluated.mu, actions)
+    def imitation_loss(self, evaluated: PolicyEval, actions: Tensor, valid: Tensor | None = None) -> Tensor:
+        """How far the policy is from a teacher who asked for `actions` (B, N, 4), over the (B, N) `valid` requests
+        (all by default)."""
+        return self.location.imitation_loss(evaluated.log_pi, evaluated.mu, actions, valid)
 
     def policy_rep(self, rep: Tensor) -> Tensor:
         return rep.detach() if self.reads_detached else rep

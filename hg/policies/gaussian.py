@@ -59,10 +59,10 @@ class GaussianPolicy(LearnedPolicy):
         offset = None if offsets is None else offsets[:, obs.k].to(state.device)
         return self.location.sample(state, deterministic=deterministic, generator=generator, offset=offset)[0]
 
-    def evaluate(self, rep: Tensor, actions: Tensor, points: Tensor) -> PolicyEval:
+    def evaluate(self, rep: Tensor, actions: Tensor, points: Tensor, chosen: Tensor | None = None) -> PolicyEval:
         states = self.location.states(self.policy_rep(rep), self.counts(*rep.shape[:2], rep.device))
         offsets = self.offsets(points)
-        log_pi, mu, sigma = self.location.log_prob_and_moments(states, actions, offsets)
+        log_pi, mu, sigma = self.location.log_prob_and_moments(states, actions if chosen is None else chosen, offsets)
         evaluated = PolicyEval(log_pi, self.baseline(states.detach()), mu, sigma, stats=self.std_stats(sigma))
         if offsets is not None:
             # how far the mean policy has moved from its prior (request units, squared, summed over components)

@@ -5,7 +5,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from hg.policies import Policy
+from hg.policies import Observation, Policy
+from hg.rl.rollout import Rollout
 
 
 class Warmup:
@@ -27,6 +28,11 @@ class Warmup:
     def prober(self, policy: Policy) -> Policy:
         """What probes when the warm-up gives no requests."""
         return policy
+
+    def targets(self, policy: Policy, rollout: Rollout) -> tuple[Tensor, Tensor | None]:
+        """What an imitating policy learns to ask for in the states of `rollout` (B, N, 4), and at which probes
+        (B, N) bool, None for all: by default the requests the warm-up sent."""
+        return rollout.actions, None
 
 
 class FollowPrior(Warmup):
@@ -66,3 +72,49 @@ class ImitateTeacher(Warmup):
         faults = None if self.teacher["faults"] is None else self.teacher["faults"][rows]
         return (self.teacher["labels"][rows].to(labels.device), self.teacher["poses"][rows].to(poses.device),
                 self.teacher["requests"][rows], faults)
+
+
+class ExploreAroundPrior(FollowPrior):
+    """FollowPrior(imitate=true) whose scan, at each probe with probability `explore`, gives way to one of the
+    choice's candidates not yet probed, drawn at random; the choice learns to ask for what the scan would ask given
+    what was really probed (Scan.requests of the rollout's points), except where that was probed already. Why:
+    heads that learned behind the scan's probes alone read any other probe worse, so once the choice learns by the
+    hybrid rule the class reward charges a departure from the scan for being unfamiliar, not for being worse
+    (docs/findings.md, section 16)."""
+
+    def __init__(self, steps: int, explore: float = 0.3) -> None:
+        super().__init__(steps, imitate=True)
+        if not 0.0 < explore <= 1.0:
+            raise ValueError(f"warmup.explore={explore}: the share of probes drawn at random must be in (0, 1]")
+        self.explore = explore
+
+    def prober(self, policy: Policy) -> Policy:
+        prior = super().prober(policy)
+        if getattr(policy, "candidates", None) is None:
+            raise ValueError(f"model.warmup: ExploreAroundPrior draws its detours among the policy's candidates; "
+                             f"{type(policy).__name__} has none (hg.policies.CandidateChoice has)")
+        return Detours(prior, policy.candidates, self.explore)
+
+    def targets(self, policy: Policy, rollout: Rollout) -> tuple[Tensor, Tensor | None]:
+        wanted = policy.prior.requests(rollout.points)
+        # request k repeats an earlier one: the choice never probes a place twice, so it cannot be copied there
+        same = (wanted[:, :, None] - rollout.actions[:, None]).abs().amax(-1) < 1e-4  # (B, k, j)
+        earlier = torch.ones(same.shape[1:], dtype=torch.bool, device=same.device).tril(-1)
+        return wanted, ~(same & earlier).any(-1)
+
+
+class Detours(Policy):
+    """The `prior` scan's request, or with probability `explore` a candidate (C, 4) not yet probed, drawn at random:
+    ExploreAroundPrior's prober."""
+
+    def __init__(self, prior: Policy, candidates: Tensor, explore: float) -> None:
+        super().__init__()
+        self.prior, self.candidates, self.explore = prior, candidates.cpu(), explore
+
+    def act(self, obs: Observation, deterministic: bool, generator: torch.Generator) -> Tensor:
+        request = self.prior.act(obs, deterministic, generator).cpu()
+        sent = obs.actions[:, :obs.k].cpu()
+        probed = ((sent[:, :, None] - self.candidates).abs().amax(-1) < 1e-4).any(1)  # (B, C)
+        draw = torch.rand(len(request), len(self.candidates), generator=generator).masked_fill(probed, -1.0)
+        detour = torch.rand(len(request), generator=generator) < self.explore
+        return torch.where(detour[:, None], self.candidates[draw.argmax(-1)], request)
