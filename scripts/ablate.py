@@ -11,7 +11,6 @@ over the last half of training of the diagnostics: touch rate, clamped share, gr
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import shlex
@@ -32,6 +31,7 @@ def run(base: list[str], override: str, seed: int, steps: int, val_episodes: int
     """Train, validate at the last step, and summarise the diagnostics of the second half of training."""
     import torch
 
+    from hg.lightning.callbacks import GradientDiagnostics
     from hg.lightning.cli import cli
 
     start = time.time()
@@ -46,11 +46,9 @@ def run(base: list[str], override: str, seed: int, steps: int, val_episodes: int
         trained = cli(args, run=False)
         trained.trainer.fit(trained.model, datamodule=trained.datamodule)
         metrics = trained.trainer.callback_metrics
-        rows = list(csv.DictReader((Path(folder) / "diagnostics.csv").open()))
     n = trained.model.hparams.n_probes
-    late = rows[len(rows) // 2:]
-    summary = {k: statistics.fmean(float(r[k]) for r in late if r.get(k)) for k in DIAGNOSTICS
-               if any(r.get(k) for r in late)}
+    diagnostics = next(c for c in trained.trainer.callbacks if isinstance(c, GradientDiagnostics))
+    summary = {k: v for k, v in diagnostics.late_means(0.5).items() if k in DIAGNOSTICS}
 
     def column(name: str) -> list[float]:  # an optional column: empty where the run logs none
         return [round(float(metrics[f"val/{name}@{k}"]), 4) for k in range(1, n + 1) if f"val/{name}@{k}" in metrics]

@@ -19,6 +19,7 @@ import yaml
 from torch import nn
 
 from hg.lightning import HapticGlance, ProbeDataModule
+from hg.lightning.callbacks import GradientDiagnostics
 from hg.lightning.cli import cli
 from hg.nets import PCRN, FCClassifier, TouchSetClassifier
 from hg.policies import CandidateChoice, GaussianPolicy, LineScan, SidePickingScan
@@ -584,6 +585,8 @@ def test_scoring_a_checkpoint_trains_nothing_and_gives_what_its_run_gave(tmp_pat
     best = ROOT / trained["best_checkpoint"]  # (relative to the repository when inside it)
     scored = fit_and_test(config, 0, tmp_path / "scored", checkpoint=best, **kwargs)
     assert trained["train_wall_s"] > 0 and scored["train_wall_s"] == 0.0
+    # how training ended on training poses, from the diagnostics' rows (one here: step 0, every 50 steps)
+    assert 0 <= trained["train_last_quarter"]["acc"] <= 1 and scored["train_last_quarter"] is None
     # run again in its folder: it resumes from last.ckpt at its last step, trains nothing more, and still reports
     # the time its steps took (TrainingClock's total rides in the checkpoint), not the empty attempt's
     again = fit_and_test(config, 0, tmp_path / "trained", **kwargs)
@@ -633,6 +636,16 @@ def test_gradient_diagnostics_measure_what_the_policy_term_sends_into_the_encode
     assert [float(r["step"]) for r in resumed] == [0.0, 1.0, 2.0, 3.0] and resumed[:2] == rows
     detached = fit(tmp_path / "detached", 2, "--model.policy.init_args.reads_detached", "true")
     assert all(float(r["grad_policy"]) == 0 and float(r["grad_ce"]) > 0 for r in detached)
+
+
+def test_late_means_average_each_term_over_the_last_share_of_the_diagnostics_rows():
+    """What a run's record keeps of how training ended (ablate.py: the second half; fit_and_test: the last quarter);
+    a term logged on some rows only is averaged over those."""
+    diagnostics = GradientDiagnostics()
+    diagnostics.rows = [{"step": 0.0, "acc": 0.0}, {"step": 1.0, "acc": 0.5, "touch_rate": 1.0},
+                        {"step": 2.0, "acc": 1.0}]
+    assert diagnostics.late_means(0.5) == {"acc": 0.75, "touch_rate": 1.0}
+    assert diagnostics.late_means(0.25) == {"acc": 1.0}
 
 
 class LossRecorder(pl.Callback):

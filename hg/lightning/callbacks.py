@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import statistics
 import time
 from pathlib import Path
 
@@ -244,6 +245,13 @@ class GradientDiagnostics(pl.Callback):
             writer.writeheader()
             writer.writerows(self.rows)
             write_atomic(path, text.getvalue())
+
+    def late_means(self, share: float) -> dict[str, float]:
+        """The mean of each term over the last `share` of the rows (a resumed run's included): how training ended,
+        on training poses (e.g. `acc`, the batch's accuracy after the last probe), for a run's record."""
+        late = self.rows[int(len(self.rows) * (1 - share)):]
+        keys = dict.fromkeys(k for row in late for k in row if k != "step")
+        return {k: statistics.fmean(row[k] for row in late if k in row) for k in keys}
 
 
 def schedule_end(trainer: pl.Trainer, name: str) -> int:

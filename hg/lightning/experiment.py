@@ -37,11 +37,13 @@ def fit_and_test(configs: str | Path | Sequence[str | Path], seed: int, folder: 
     `extra_args` are CLI overrides applied after the configs (e.g. the sensor noise); `steps` overrides max_steps
     (smoke tests). Returns the accuracy after each probe of every prediction the model logs (`columns`, named as
     hg.lightning.callbacks.per_probe_table names them; `accuracy` and `accuracy_mean_action` are the learned heads'),
-    the validation accuracy after the last probe (`val`, same names), the best checkpoint, the CLI arguments
+    the validation accuracy after the last probe (`val`, same names), the training batches' accuracy after the last
+    probe and touch rate over the last quarter of the diagnostics' rows (`train_last_quarter`: how well it fits
+    training poses, beside how well it generalises; None when this attempt trained no step), the best checkpoint, the CLI arguments
     (`cli_args`, without the folder's) and the run's facts; the caller adds what it is for and writes it."""
     import torch
 
-    from hg.lightning.callbacks import TrainingClock, per_probe_table
+    from hg.lightning.callbacks import GradientDiagnostics, TrainingClock, per_probe_table
     from hg.lightning.cli import cli
 
     configs = [configs] if isinstance(configs, (str, Path)) else list(configs)
@@ -57,7 +59,7 @@ def fit_and_test(configs: str | Path | Sequence[str | Path], seed: int, folder: 
     run = cli([*run_args(configs, seed, portable=False, **given), *logger, "--checkpoint.dirpath", str(checkpoints),
                "--last_checkpoint.dirpath", str(checkpoints)], run=False)
     n_probes = run.model.hparams.n_probes
-    resumed_from, val = 0, {}
+    resumed_from, val, late = 0, {}, None
     if checkpoint is not None:
         if not checkpoint.is_file():
             raise FileNotFoundError(f"{checkpoint}: the checkpoint to score is missing")
@@ -93,6 +95,9 @@ def fit_and_test(configs: str | Path | Sequence[str | Path], seed: int, folder: 
             best_path, best_score = str(kept[-1]), None
         if best_score is not None:
             val = {"stochastic": float(best_score)}
+        diagnostics = next((c for c in run.trainer.callbacks if isinstance(c, GradientDiagnostics)), None)
+        if diagnostics is not None and diagnostics.rows:  # how training ended, on training poses
+            late = {k: round(v, 4) for k, v in diagnostics.late_means(0.25).items() if k in ("acc", "touch_rate")}
     start = time.time()
     run.trainer.test(run.model, datamodule=run.datamodule, ckpt_path=best_path)
     test_s = time.time() - start
@@ -105,7 +110,7 @@ def fit_and_test(configs: str | Path | Sequence[str | Path], seed: int, folder: 
     return {
         "cli_args": run_args(configs, seed, **given), "max_steps": run.trainer.max_steps, "resumed_from_step": resumed_from,
         "columns": columns, "accuracy": columns["stochastic"], "accuracy_mean_action": columns.get("mean_action"),
-        "val": {k: round(v, 4) for k, v in val.items()},
+        "val": {k: round(v, 4) for k, v in val.items()}, "train_last_quarter": late,
         "best_val_acc": round(float(best_score), 4) if best_score is not None else None,
         "best_checkpoint": repo_path(best_path),
         "train_wall_s": round(train_s, 1), "test_wall_s": round(test_s, 1),
