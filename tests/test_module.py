@@ -373,8 +373,8 @@ def test_warmup_trains_the_classifiers_behind_the_prior_scan_and_leaves_the_poli
 
 def test_an_exploring_copy_probes_off_the_scan_and_copies_what_the_scan_would_ask(data):
     """ExploreAroundPrior: some probes are candidates the scan did not ask for, never one probed already; the choice
-    learns to ask for the scan's request after what was really probed, except where that request was probed
-    already (a choice never probes twice)."""
+    learns to make such detours as often, and otherwise the scan's request after what was really probed, except
+    where that request was probed already (a choice never probes twice)."""
     warmup = ExploreAroundPrior(2, explore=0.5)
     scan = lambda dims: SidePickingScan(dims, span=0.5, lean=0.6, first_lean=1.0)  # noqa: E731
     model = make_model(data, policy=lambda dims: CandidateChoice(dims, places=None, leans=(0.6, 1.0), hidden=32,
@@ -390,12 +390,20 @@ def test_an_exploring_copy_probes_off_the_scan_and_copies_what_the_scan_would_as
     assert not probed_before[detour].any()
     # the targets are the scan's requests after the rollout's points; one the rollout sent earlier is left out
     rollout.actions[:, 0] = wanted[:, 2]  # what the scan asks for third, sent first: its third is not copied
-    targets, valid = warmup.targets(model.policy, rollout)
-    assert torch.equal(targets, wanted) and not valid[:, 2].any() and valid[:, 0].all()
+    imitation = warmup.targets(model.policy, rollout)
+    valid = imitation.valid
+    assert torch.equal(imitation.requests, wanted) and not valid[:, 2].any() and valid[:, 0].all()
+    # the copy's cross-entropy: the scan's request with half the weight, the other half spread evenly over the
+    # candidates not yet probed (explore 0.5), as the warm-up's own detours
     terms, _ = model.evaluate(rollout, batch["labels"], "imitate")
     rep = model.encoder(rollout.requests, rollout.points)
-    log_pi = model.policy.evaluate(rep, rollout.actions, rollout.points, chosen=targets).log_pi
-    torch.testing.assert_close(terms["loss_imitation"], -log_pi[valid].mean())
+    evaluated = model.policy.evaluate(rep, rollout.actions, rollout.points, chosen=wanted)
+    allowed = torch.isfinite(evaluated.choices)
+    sent = model.policy.location.index_of(rollout.actions).tolist()  # of 4 places x (straight, 2 leans each way)
+    assert allowed.sum(-1).tolist() == [[20 - len(set(row[:k])) for k in range(4)] for row in sent]
+    spread = torch.stack([evaluated.choices[b, k][allowed[b, k]].mean() for b in range(8) for k in range(4)])
+    expected = 0.5 * -evaluated.log_pi[valid].mean() + 0.5 * -spread.view(8, 4)[valid].mean()
+    torch.testing.assert_close(terms["loss_imitation"], expected)
     assert torch.isfinite(terms["loss"]) and reaches(model, terms["loss_imitation"])["location"]
     model.sim.close()
 

@@ -10,7 +10,8 @@ import torch.nn.functional as F
 
 from hg.lightning.data import ProbeDataModule
 from hg.nets import PCRN, Dims, LSTMEncoder
-from hg.policies import (CandidateChoice, GaussianPolicy, LineScan, Observation, RandomProbes, SidePickingScan)
+from hg.policies import (CandidateChoice, GaussianPolicy, Imitation, LineScan, Observation, RandomProbes,
+                         SidePickingScan)
 from hg.rl import rollout
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -305,7 +306,7 @@ def fit_copy(policy, encoder, out, parameters, steps: int, lr: float) -> list[fl
     losses = []
     for _ in range(steps):
         evaluated = policy.evaluate(encoder(out.requests, out.points), out.actions, out.points)
-        loss = policy.imitation_loss(evaluated, out.actions)
+        loss = policy.imitation_loss(evaluated, Imitation(out.actions))
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()

@@ -11,7 +11,7 @@ from torch import Tensor, nn
 
 from hg.nets import TouchSetClassifier
 from hg.nets.dims import Dims
-from hg.policies import LearnedPolicy, Policy
+from hg.policies import Imitation, LearnedPolicy, Policy
 from hg.rl import HybridLoss, Rollout, rollout
 from hg.rl.warmup import FollowPrior, ImitateTeacher, Warmup
 from hg.sim import ProbeSimulator
@@ -129,10 +129,10 @@ class HapticGlance(pl.LightningModule):
         if evaluated is not None:
             extra = dict(evaluated.losses)
             if regime == "imitate":  # what the warm-up would ask for in these states; by default what it sent
-                targets, valid = self.warmup.targets(self.policy, rollout) if self.warmup else (rollout.actions, None)
-                copied = evaluated if targets is rollout.actions else self.policy.evaluate(
-                    rep, rollout.actions, rollout.points, chosen=targets)
-                extra["loss_imitation"] = self.policy.imitation_loss(copied, targets, valid)
+                imitation = self.warmup.targets(self.policy, rollout) if self.warmup else Imitation(rollout.actions)
+                copied = evaluated if imitation.requests is rollout.actions else self.policy.evaluate(
+                    rep, rollout.actions, rollout.points, chosen=imitation.requests)
+                extra["loss_imitation"] = self.policy.imitation_loss(copied, imitation)
             terms |= evaluated.stats | extra
             terms["loss"] = terms["loss"] + sum(extra.values())
         return terms, logits

@@ -40,6 +40,18 @@ class PolicyEval:
     sigma: Tensor
     losses: dict[str, Tensor] = field(default_factory=dict)
     stats: dict[str, Tensor] = field(default_factory=dict)
+    choices: Tensor | None = None  # (B, N, C) log pi of every candidate, for a policy choosing among candidates
+
+
+@dataclass
+class Imitation:
+    """What an imitating policy learns to ask for in the states of a rollout: `requests` (B, N, 4), at the `valid`
+    probes (B, N) bool (None: all), with the share `detours` of the choice spread evenly over the candidates not yet
+    probed: an exploring warm-up's own spread, so that the copy explores as the probes the heads learned behind."""
+
+    requests: Tensor
+    valid: Tensor | None = None
+    detours: float = 0.0
 
 
 class Policy(nn.Module):
@@ -78,10 +90,11 @@ class LearnedPolicy(Policy):
         exploring warm-up did not always send)."""
         raise NotImplementedError
 
-    def imitation_loss(self, evaluated: PolicyEval, actions: Tensor, valid: Tensor | None = None) -> Tensor:
-        """How far the policy is from a teacher who asked for `actions` (B, N, 4), over the (B, N) `valid` requests
-        (all by default)."""
-        return self.location.imitation_loss(evaluated.log_pi, evaluated.mu, actions, valid)
+    def imitation_loss(self, evaluated: PolicyEval, imitation: Imitation) -> Tensor:
+        """How far the policy, `evaluated` on the imitation's requests, is from the teacher."""
+        if imitation.detours:
+            raise ValueError(f"{type(self).__name__} has no candidates to spread a copy's detours over")
+        return self.location.imitation_loss(evaluated.log_pi, evaluated.mu, imitation.requests, imitation.valid)
 
     def policy_rep(self, rep: Tensor) -> Tensor:
         return rep.detach() if self.reads_detached else rep
@@ -93,4 +106,4 @@ class LearnedPolicy(Policy):
         return {f"std_{c}": sigma[i] for i, c in enumerate(COMPONENTS)}
 
 
-__all__ = ["COMPONENTS", "Dims", "LearnedPolicy", "Observation", "Policy", "PolicyEval"]
+__all__ = ["COMPONENTS", "Dims", "Imitation", "LearnedPolicy", "Observation", "Policy", "PolicyEval"]

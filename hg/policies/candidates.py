@@ -10,8 +10,9 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from hg.nets import CandidateLocationNetwork
+from hg.nets.location import valid_mean
 from hg.nets.dims import Dims
-from hg.policies.base import LearnedPolicy, Observation, PolicyEval
+from hg.policies.base import Imitation, LearnedPolicy, Observation, PolicyEval
 from hg.policies.scans import Scan
 from hg.sim import candidate_requests
 
@@ -76,5 +77,18 @@ class CandidateChoice(LearnedPolicy):
         readings, probed = self.location.readings(actions, points, self.n_probes)
         states = self.location.states(self.policy_rep(rep), readings)
         exclude = F.pad(probed[:, :-1], (0, 0, 1, 0), value=False)  # state s_k excludes what probes 1..k probed
-        log_pi, mu, sigma = self.location.log_prob_and_moments(states, actions if chosen is None else chosen, exclude)
-        return PolicyEval(log_pi, self.baseline(states.detach()), mu, sigma, stats=self.std_stats(sigma))
+        choices = self.location.log_probs(states, exclude)
+        log_pi = self.location.log_prob_of(choices, actions if chosen is None else chosen)
+        mu, sigma = self.location.moments(choices)
+        return PolicyEval(log_pi, self.baseline(states.detach()), mu, sigma, stats=self.std_stats(sigma),
+                          choices=choices)
+
+    def imitation_loss(self, evaluated: PolicyEval, imitation: Imitation) -> Tensor:
+        """The cross-entropy of the teacher's choices, or of an exploring copy's spread: the requests with 1 -
+        detours, every candidate not yet probed with an even share of the detours."""
+        copied = -valid_mean(evaluated.log_pi, imitation.valid)
+        if not imitation.detours:
+            return copied
+        allowed = torch.isfinite(evaluated.choices)
+        spread = -evaluated.choices.where(allowed, 0.0).sum(-1) / allowed.sum(-1)
+        return (1 - imitation.detours) * copied + imitation.detours * valid_mean(spread, imitation.valid)

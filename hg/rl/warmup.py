@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from hg.policies import Observation, Policy
+from hg.policies import Imitation, Observation, Policy
 from hg.rl.rollout import Rollout
 
 
@@ -29,10 +29,10 @@ class Warmup:
         """What probes when the warm-up gives no requests."""
         return policy
 
-    def targets(self, policy: Policy, rollout: Rollout) -> tuple[Tensor, Tensor | None]:
-        """What an imitating policy learns to ask for in the states of `rollout` (B, N, 4), and at which probes
-        (B, N) bool, None for all: by default the requests the warm-up sent."""
-        return rollout.actions, None
+    def targets(self, policy: Policy, rollout: Rollout) -> Imitation:
+        """What an imitating policy learns to ask for in the states of `rollout`: by default the requests the warm-up
+        sent."""
+        return Imitation(rollout.actions)
 
 
 class FollowPrior(Warmup):
@@ -76,11 +76,11 @@ class ImitateTeacher(Warmup):
 
 class ExploreAroundPrior(FollowPrior):
     """FollowPrior(imitate=true) whose scan, at each probe with probability `explore`, gives way to one of the
-    choice's candidates not yet probed, drawn at random; the choice learns to ask for what the scan would ask given
-    what was really probed (Scan.requests of the rollout's points), except where that was probed already. Why:
-    heads that learned behind the scan's probes alone read any other probe worse, so once the choice learns by the
-    hybrid rule the class reward charges a departure from the scan for being unfamiliar, not for being worse
-    (docs/findings.md, section 16)."""
+    choice's candidates not yet probed, drawn at random; the choice learns to make the same detours, and otherwise
+    to ask for what the scan would ask given what was really probed (Scan.requests of the rollout's points), except
+    where that was probed already. Why: heads that learned behind the scan's probes alone read any other probe
+    worse, and a choice that copied the scan exactly never tries another, so the hybrid rule had nothing to learn
+    from (docs/findings.md, sections 16-17)."""
 
     def __init__(self, steps: int, explore: float = 0.3) -> None:
         super().__init__(steps, imitate=True)
@@ -95,12 +95,12 @@ class ExploreAroundPrior(FollowPrior):
                              f"{type(policy).__name__} has none (hg.policies.CandidateChoice has)")
         return Detours(prior, policy.candidates, self.explore)
 
-    def targets(self, policy: Policy, rollout: Rollout) -> tuple[Tensor, Tensor | None]:
+    def targets(self, policy: Policy, rollout: Rollout) -> Imitation:
         wanted = policy.prior.requests(rollout.points)
         # request k repeats an earlier one: the choice never probes a place twice, so it cannot be copied there
         same = (wanted[:, :, None] - rollout.actions[:, None]).abs().amax(-1) < 1e-4  # (B, k, j)
         earlier = torch.ones(same.shape[1:], dtype=torch.bool, device=same.device).tril(-1)
-        return wanted, ~(same & earlier).any(-1)
+        return Imitation(wanted, ~(same & earlier).any(-1), detours=self.explore)
 
 
 class Detours(Policy):
