@@ -405,6 +405,14 @@ def test_an_exploring_copy_probes_off_the_scan_and_copies_what_the_scan_would_as
     expected = 0.5 * -evaluated.log_pi[valid].mean() + 0.5 * -spread.view(8, 4)[valid].mean()
     torch.testing.assert_close(terms["loss_imitation"], expected)
     assert torch.isfinite(terms["loss"]) and reaches(model, terms["loss_imitation"])["location"]
+    assert all(torch.isfinite(p.grad).all() for p in model.policy.location.parameters())  # -inf left out, no NaN
+    # a choice even over the candidates it may take pays log(how many) at each copied probe, however it spreads
+    last = model.policy.location.net[-1]
+    with torch.no_grad():
+        last.weight.zero_(), last.bias.zero_()
+    terms, _ = model.evaluate(rollout, batch["labels"], "imitate")
+    choices = torch.tensor([[float(20 - len(set(row[:k]))) for k in range(4)] for row in sent])
+    torch.testing.assert_close(terms["loss_imitation"], choices.log()[valid].mean())
     model.sim.close()
 
 
@@ -599,6 +607,7 @@ def test_scoring_a_checkpoint_trains_nothing_and_gives_what_its_run_gave(tmp_pat
     # the time its steps took (TrainingClock's total rides in the checkpoint), not the empty attempt's
     again = fit_and_test(config, 0, tmp_path / "trained", **kwargs)
     assert again["resumed_from_step"] == trained["max_steps"] and again["accuracy"] == trained["accuracy"]
+    assert again["train_last_quarter"] == trained["train_last_quarter"]  # the diagnostics ride in the checkpoint
     saved = torch.load(tmp_path / "trained" / "checkpoints" / "last.ckpt", weights_only=False)["callbacks"]
     # (the checkpoint is written before the attempt ends, so it holds a little less than the attempt's total; how much
     # less depends on the machine's load, so only the order is asserted)
@@ -654,6 +663,10 @@ def test_late_means_average_each_term_over_the_last_share_of_the_diagnostics_row
                         {"step": 2.0, "acc": 1.0}]
     assert diagnostics.late_means(0.5) == {"acc": 0.75, "touch_rate": 1.0}
     assert diagnostics.late_means(0.25) == {"acc": 1.0}
+    diagnostics.rows = [{"step": float(k), "acc": float(k)} for k in range(5)]
+    assert diagnostics.late_means(0.8) == {"acc": 2.5}  # 4 of 5 rows, though 5 x (1 - 0.8) is not quite 1 in floats
+    with pytest.raises(ValueError, match=r"late_means: share=0: .* \(0, 1\]"):
+        diagnostics.late_means(0)
 
 
 class LossRecorder(pl.Callback):

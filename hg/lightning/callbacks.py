@@ -246,10 +246,20 @@ class GradientDiagnostics(pl.Callback):
             writer.writerows(self.rows)
             write_atomic(path, text.getvalue())
 
+    def state_dict(self) -> dict:
+        """The rows so far ride in the checkpoint: a resumed run (even one that trains no further step) reads its
+        whole training in late_means, whatever folder its new attempt logs to."""
+        return {"rows": self.rows}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self.rows = [dict(row) for row in state_dict["rows"]]
+
     def late_means(self, share: float) -> dict[str, float]:
-        """The mean of each term over the last `share` of the rows (a resumed run's included): how training ended,
-        on training poses (e.g. `acc`, the batch's accuracy after the last probe), for a run's record."""
-        late = self.rows[int(len(self.rows) * (1 - share)):]
+        """The mean of each term over the last `share` of the rows (at least one): how training ended, on training
+        poses (e.g. `acc`, the batch's accuracy after the last probe), for a run's record."""
+        if not 0.0 < share <= 1.0:
+            raise ValueError(f"late_means: share={share}: the share of the rows must be in (0, 1]")
+        late = self.rows[len(self.rows) - math.ceil(len(self.rows) * share - 1e-9):]
         keys = dict.fromkeys(k for row in late for k in row if k != "step")
         return {k: statistics.fmean(row[k] for row in late if k in row) for k in keys}
 

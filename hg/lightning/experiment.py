@@ -27,6 +27,10 @@ def run_args(configs: Sequence[str | Path], seed: int, *, eval_seed: int, test_e
             "--data.test_episodes", str(test_episodes), *extra_args]
 
 
+# what a run's record keeps of how training ended: these terms over this last share of the diagnostics' rows
+TRAINING_END_TERMS, TRAINING_END_SHARE = ("acc", "touch_rate"), 0.25
+
+
 def fit_and_test(configs: str | Path | Sequence[str | Path], seed: int, folder: Path, *, eval_seed: int,
                  test_episodes: int, steps: int | None = None, extra_args: Sequence[str] = (),
                  checkpoint: Path | None = None, validate: bool = True) -> dict:
@@ -38,9 +42,10 @@ def fit_and_test(configs: str | Path | Sequence[str | Path], seed: int, folder: 
     (smoke tests). Returns the accuracy after each probe of every prediction the model logs (`columns`, named as
     hg.lightning.callbacks.per_probe_table names them; `accuracy` and `accuracy_mean_action` are the learned heads'),
     the validation accuracy after the last probe (`val`, same names), the training batches' accuracy after the last
-    probe and touch rate over the last quarter of the diagnostics' rows (`train_last_quarter`: how well it fits
-    training poses, beside how well it generalises; None when this attempt trained no step), the best checkpoint, the CLI arguments
-    (`cli_args`, without the folder's) and the run's facts; the caller adds what it is for and writes it."""
+    probe and touch rate over the last quarter of the diagnostics' rows (`train_last_quarter`: how
+    well it fits training poses, beside how well it generalises; None when nothing trained), the best checkpoint,
+    the CLI arguments (`cli_args`, without the folder's) and the run's facts; the caller adds what it is for and
+    writes it."""
     import torch
 
     from hg.lightning.callbacks import GradientDiagnostics, TrainingClock, per_probe_table
@@ -97,7 +102,8 @@ def fit_and_test(configs: str | Path | Sequence[str | Path], seed: int, folder: 
             val = {"stochastic": float(best_score)}
         diagnostics = next((c for c in run.trainer.callbacks if isinstance(c, GradientDiagnostics)), None)
         if diagnostics is not None and diagnostics.rows:  # how training ended, on training poses
-            late = {k: round(v, 4) for k, v in diagnostics.late_means(0.25).items() if k in ("acc", "touch_rate")}
+            late = {k: round(v, 4) for k, v in diagnostics.late_means(TRAINING_END_SHARE).items()
+                    if k in TRAINING_END_TERMS}
     start = time.time()
     run.trainer.test(run.model, datamodule=run.datamodule, ckpt_path=best_path)
     test_s = time.time() - start

@@ -118,9 +118,12 @@ class HapticGlance(pl.LightningModule):
         paper (the imitation of a teacher, the policy's own, e.g. its anchor) are named and added here, and only
         here."""
         logits, rep = self.predict(rollout)
-        evaluated = None
+        evaluated = imitation = None
+        if regime == "imitate":  # what the warm-up would ask for in these states; by default what it sent
+            imitation = self.warmup.targets(self.policy, rollout) if self.warmup else Imitation(rollout.actions)
         if regime != "classify" and isinstance(self.policy, LearnedPolicy):
-            evaluated = self.policy.evaluate(rep, rollout.actions, rollout.points)
+            evaluated = self.policy.evaluate(rep, rollout.actions, rollout.points,
+                                             chosen=None if imitation is None else imitation.requests)
         if regime == "reinforce" and evaluated is not None:
             terms = self.loss(logits, labels, evaluated.log_pi, evaluated.baseline, float(self.policy.std_scale),
                               points=rollout.points)
@@ -128,11 +131,8 @@ class HapticGlance(pl.LightningModule):
             terms = self.loss(logits, labels, points=rollout.points)
         if evaluated is not None:
             extra = dict(evaluated.losses)
-            if regime == "imitate":  # what the warm-up would ask for in these states; by default what it sent
-                imitation = self.warmup.targets(self.policy, rollout) if self.warmup else Imitation(rollout.actions)
-                copied = evaluated if imitation.requests is rollout.actions else self.policy.evaluate(
-                    rep, rollout.actions, rollout.points, chosen=imitation.requests)
-                extra["loss_imitation"] = self.policy.imitation_loss(copied, imitation)
+            if imitation is not None:
+                extra["loss_imitation"] = self.policy.imitation_loss(evaluated, imitation)
             terms |= evaluated.stats | extra
             terms["loss"] = terms["loss"] + sum(extra.values())
         return terms, logits

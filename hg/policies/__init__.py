@@ -3,7 +3,7 @@ choice among the planner's candidate probes, and fixed scans are small classes b
 from hg.policies.base import COMPONENTS, Imitation, LearnedPolicy, Observation, Policy, PolicyEval
 from hg.policies.candidates import CandidateChoice
 from hg.policies.gaussian import GaussianPolicy
-from hg.policies.scans import LineScan, RandomProbes, Scan, SidePickingScan
+from hg.policies.scans import Detours, LineScan, RandomProbes, Scan, SidePickingScan
 
-__all__ = ["COMPONENTS", "CandidateChoice", "GaussianPolicy", "Imitation", "LearnedPolicy", "LineScan", "Observation", "Policy",
-           "PolicyEval", "RandomProbes", "Scan", "SidePickingScan"]
+__all__ = ["COMPONENTS", "CandidateChoice", "Detours", "GaussianPolicy", "Imitation", "LearnedPolicy", "LineScan",
+           "Observation", "Policy", "PolicyEval", "RandomProbes", "Scan", "SidePickingScan"]

@@ -46,12 +46,12 @@ class PolicyEval:
 @dataclass
 class Imitation:
     """What an imitating policy learns to ask for in the states of a rollout: `requests` (B, N, 4), at the `valid`
-    probes (B, N) bool (None: all), with the share `detours` of the choice spread evenly over the candidates not yet
-    probed: an exploring warm-up's own spread, so that the copy explores as the probes the heads learned behind."""
+    probes (B, N) bool (None: all), with the share `explore` of the choice spread evenly over the candidates not yet
+    probed: an exploring warm-up's random detours, so that the copied choice keeps trying other probes."""
 
     requests: Tensor
     valid: Tensor | None = None
-    detours: float = 0.0
+    explore: float = 0.0
 
 
 class Policy(nn.Module):
@@ -92,8 +92,8 @@ class LearnedPolicy(Policy):
 
     def imitation_loss(self, evaluated: PolicyEval, imitation: Imitation) -> Tensor:
         """How far the policy, `evaluated` on the imitation's requests, is from the teacher."""
-        if imitation.detours:
-            raise ValueError(f"{type(self).__name__} has no candidates to spread a copy's detours over")
+        if imitation.explore:
+            raise ValueError(f"model.warmup: {type(self).__name__} has no candidates to spread an exploring copy over")
         return self.location.imitation_loss(evaluated.log_pi, evaluated.mu, imitation.requests, imitation.valid)
 
     def policy_rep(self, rep: Tensor) -> Tensor:

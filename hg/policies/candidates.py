@@ -10,8 +10,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from hg.nets import CandidateLocationNetwork
-from hg.nets.location import valid_mean
 from hg.nets.dims import Dims
+from hg.nets.location import valid_mean
 from hg.policies.base import Imitation, LearnedPolicy, Observation, PolicyEval
 from hg.policies.scans import Scan
 from hg.sim import candidate_requests
@@ -23,7 +23,8 @@ class CandidateChoice(LearnedPolicy):
     reads PCRN's state; without it, the readings only (the baseline always reads both): PCRN's state holds where
     the training objects lay, which held-out positions do not share. With a `prior` scan, whose requests must be
     among the candidates, a FollowPrior(imitate=true) warm-up teaches the choice to copy it before it learns by the
-    hybrid rule: a learned policy that starts as good as the scan."""
+    hybrid rule: a learned policy that starts as good as the scan (ExploreAroundPrior: a copy that keeps trying
+    other candidates)."""
 
     copies_prior = True
 
@@ -84,11 +85,11 @@ class CandidateChoice(LearnedPolicy):
                           choices=choices)
 
     def imitation_loss(self, evaluated: PolicyEval, imitation: Imitation) -> Tensor:
-        """The cross-entropy of the teacher's choices, or of an exploring copy's spread: the requests with 1 -
-        detours, every candidate not yet probed with an even share of the detours."""
+        """The cross-entropy of the teacher's choices, or of an exploring copy's: the requests with weight 1 -
+        explore, every candidate not yet probed with an even share of explore."""
         copied = -valid_mean(evaluated.log_pi, imitation.valid)
-        if not imitation.detours:
+        if not imitation.explore:
             return copied
         allowed = torch.isfinite(evaluated.choices)
         spread = -evaluated.choices.where(allowed, 0.0).sum(-1) / allowed.sum(-1)
-        return (1 - imitation.detours) * copied + imitation.detours * valid_mean(spread, imitation.valid)
+        return (1 - imitation.explore) * copied + imitation.explore * valid_mean(spread, imitation.valid)

@@ -106,3 +106,20 @@ class SidePickingScan(LineScan):
         later = [(py, ux, uz) for py in self.places[1:-1] for ux, uz in ((1.0, 1.0 - self.lean),
                                                                          (-1.0, 1.0 - self.lean), (0.0, 1.0))]
         return torch.tensor([(float(py), ux, 0.0, uz) for py, ux, uz in first + later])
+
+
+class Detours(Policy):
+    """The `prior` scan's request, or with probability `explore` a candidate (C, 4) not yet probed, drawn at random
+    (always drawn: `deterministic` reaches only the scan): the prober of hg.rl.ExploreAroundPrior's warm-up."""
+
+    def __init__(self, prior: Policy, candidates: Tensor, explore: float) -> None:
+        super().__init__()
+        self.prior, self.candidates, self.explore = prior, candidates.cpu(), explore
+
+    def act(self, obs: Observation, deterministic: bool, generator: torch.Generator) -> Tensor:
+        request = self.prior.act(obs, deterministic, generator).cpu()
+        sent = obs.actions[:, :obs.k].cpu()
+        probed = ((sent[:, :, None] - self.candidates).abs().amax(-1) < 1e-4).any(1)  # (B, C)
+        draw = torch.rand(len(request), len(self.candidates), generator=generator).masked_fill(probed, -1.0)
+        detour = torch.rand(len(request), generator=generator) < self.explore
+        return torch.where(detour[:, None], self.candidates[draw.argmax(-1)], request)

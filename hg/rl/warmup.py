@@ -1,11 +1,12 @@
 """What the first training steps probe with, before the policy learns by REINFORCE (beyond the paper): the policy
-itself untrained, its prior scan, or a teacher's recorded episodes to copy. The classifiers learn meanwhile."""
+itself untrained, its prior scan (with random detours), or a teacher's recorded episodes to copy. The classifiers
+learn meanwhile."""
 from __future__ import annotations
 
 import torch
 from torch import Tensor
 
-from hg.policies import Imitation, Observation, Policy
+from hg.policies import Detours, Imitation, Policy
 from hg.rl.rollout import Rollout
 
 
@@ -80,7 +81,7 @@ class ExploreAroundPrior(FollowPrior):
     to ask for what the scan would ask given what was really probed (Scan.requests of the rollout's points), except
     where that was probed already. Why: heads that learned behind the scan's probes alone read any other probe
     worse, and a choice that copied the scan exactly never tries another, so the hybrid rule had nothing to learn
-    from (docs/findings.md, sections 16-17)."""
+    from (docs/findings.md, section 17)."""
 
     def __init__(self, steps: int, explore: float = 0.3) -> None:
         super().__init__(steps, imitate=True)
@@ -100,21 +101,4 @@ class ExploreAroundPrior(FollowPrior):
         # request k repeats an earlier one: the choice never probes a place twice, so it cannot be copied there
         same = (wanted[:, :, None] - rollout.actions[:, None]).abs().amax(-1) < 1e-4  # (B, k, j)
         earlier = torch.ones(same.shape[1:], dtype=torch.bool, device=same.device).tril(-1)
-        return Imitation(wanted, ~(same & earlier).any(-1), detours=self.explore)
-
-
-class Detours(Policy):
-    """The `prior` scan's request, or with probability `explore` a candidate (C, 4) not yet probed, drawn at random:
-    ExploreAroundPrior's prober."""
-
-    def __init__(self, prior: Policy, candidates: Tensor, explore: float) -> None:
-        super().__init__()
-        self.prior, self.candidates, self.explore = prior, candidates.cpu(), explore
-
-    def act(self, obs: Observation, deterministic: bool, generator: torch.Generator) -> Tensor:
-        request = self.prior.act(obs, deterministic, generator).cpu()
-        sent = obs.actions[:, :obs.k].cpu()
-        probed = ((sent[:, :, None] - self.candidates).abs().amax(-1) < 1e-4).any(1)  # (B, C)
-        draw = torch.rand(len(request), len(self.candidates), generator=generator).masked_fill(probed, -1.0)
-        detour = torch.rand(len(request), generator=generator) < self.explore
-        return torch.where(detour[:, None], self.candidates[draw.argmax(-1)], request)
+        return Imitation(wanted, ~(same & earlier).any(-1), explore=self.explore)
