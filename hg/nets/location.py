@@ -251,11 +251,8 @@ class CandidateLocationNetwork(PolicyState):
         """log pi(a_k | s_k) of candidate requests, (..., D), (..., 4) -> (...), with the moments of the choice it
         was taken under."""
         log_probs = self.log_probs(state, exclude)
-        return (self.log_prob_of(log_probs, action), *self.moments(log_probs))
-
-    def log_prob_of(self, log_probs: Tensor, action: Tensor) -> Tensor:
-        """log pi of candidate requests (..., 4), read from the log-probabilities of every candidate (..., C)."""
-        return log_probs.gather(-1, self.index_of(action)[..., None])[..., 0]
+        log_pi = log_probs.gather(-1, self.index_of(action)[..., None])[..., 0]
+        return (log_pi, *self.moments(log_probs))
 
     def imitation_loss(self, log_pi: Tensor, mu: Tensor, action: Tensor, valid: Tensor | None = None) -> Tensor:
         """How far the policy is from a teacher's choices: their cross-entropy."""

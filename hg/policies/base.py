@@ -40,18 +40,15 @@ class PolicyEval:
     sigma: Tensor
     losses: dict[str, Tensor] = field(default_factory=dict)
     stats: dict[str, Tensor] = field(default_factory=dict)
-    choices: Tensor | None = None  # (B, N, C) log pi of every candidate, for a policy choosing among candidates
 
 
 @dataclass
 class Imitation:
     """What an imitating policy learns to ask for in the states of a rollout: `requests` (B, N, 4), at the `valid`
-    probes (B, N) bool (None: all), with the share `explore` of the choice spread evenly over the candidates not yet
-    probed: an exploring warm-up's random detours, so that the copied choice keeps trying other probes."""
+    probes (B, N) bool (None: all; an exploring warm-up leaves out a request the policy may not make there)."""
 
     requests: Tensor
     valid: Tensor | None = None
-    explore: float = 0.0
 
 
 class Policy(nn.Module):
@@ -92,8 +89,6 @@ class LearnedPolicy(Policy):
 
     def imitation_loss(self, evaluated: PolicyEval, imitation: Imitation) -> Tensor:
         """How far the policy, `evaluated` on the imitation's requests, is from the teacher."""
-        if imitation.explore:
-            raise ValueError(f"model.warmup: {type(self).__name__} has no candidates to spread an exploring copy over")
         return self.location.imitation_loss(evaluated.log_pi, evaluated.mu, imitation.requests, imitation.valid)
 
     def policy_rep(self, rep: Tensor) -> Tensor:

@@ -11,8 +11,7 @@ from torch import Tensor
 
 from hg.nets import CandidateLocationNetwork
 from hg.nets.dims import Dims
-from hg.nets.location import valid_mean
-from hg.policies.base import Imitation, LearnedPolicy, Observation, PolicyEval
+from hg.policies.base import LearnedPolicy, Observation, PolicyEval
 from hg.policies.scans import Scan
 from hg.sim import candidate_requests
 
@@ -23,8 +22,8 @@ class CandidateChoice(LearnedPolicy):
     reads PCRN's state; without it, the readings only (the baseline always reads both): PCRN's state holds where
     the training objects lay, which held-out positions do not share. With a `prior` scan, whose requests must be
     among the candidates, a FollowPrior(imitate=true) warm-up teaches the choice to copy it before it learns by the
-    hybrid rule: a learned policy that starts as good as the scan (ExploreAroundPrior: a copy that keeps trying
-    other candidates)."""
+    hybrid rule: a learned policy that starts as good as the scan (ExploreAroundPrior: heads that also learn behind
+    other candidates meanwhile)."""
 
     copies_prior = True
 
@@ -78,18 +77,5 @@ class CandidateChoice(LearnedPolicy):
         readings, probed = self.location.readings(actions, points, self.n_probes)
         states = self.location.states(self.policy_rep(rep), readings)
         exclude = F.pad(probed[:, :-1], (0, 0, 1, 0), value=False)  # state s_k excludes what probes 1..k probed
-        choices = self.location.log_probs(states, exclude)
-        log_pi = self.location.log_prob_of(choices, actions if chosen is None else chosen)
-        mu, sigma = self.location.moments(choices)
-        return PolicyEval(log_pi, self.baseline(states.detach()), mu, sigma, stats=self.std_stats(sigma),
-                          choices=choices)
-
-    def imitation_loss(self, evaluated: PolicyEval, imitation: Imitation) -> Tensor:
-        """The cross-entropy of the teacher's choices, or of an exploring copy's: the requests with weight 1 -
-        explore, every candidate not yet probed with an even share of explore."""
-        copied = -valid_mean(evaluated.log_pi, imitation.valid)
-        if not imitation.explore:
-            return copied
-        allowed = torch.isfinite(evaluated.choices)
-        spread = -evaluated.choices.where(allowed, 0.0).sum(-1) / allowed.sum(-1)
-        return (1 - imitation.explore) * copied + imitation.explore * valid_mean(spread, imitation.valid)
+        log_pi, mu, sigma = self.location.log_prob_and_moments(states, actions if chosen is None else chosen, exclude)
+        return PolicyEval(log_pi, self.baseline(states.detach()), mu, sigma, stats=self.std_stats(sigma))

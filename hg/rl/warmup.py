@@ -77,11 +77,10 @@ class ImitateTeacher(Warmup):
 
 class ExploreAroundPrior(FollowPrior):
     """FollowPrior(imitate=true) whose scan, at each probe with probability `explore`, gives way to one of the
-    choice's candidates not yet probed, drawn at random; the choice learns to make the same detours, and otherwise
-    to ask for what the scan would ask given what was really probed (Scan.requests of the rollout's points), except
-    where that was probed already. Why: heads that learned behind the scan's probes alone read any other probe
-    worse, and a choice that copied the scan exactly never tries another, so the hybrid rule had nothing to learn
-    from (docs/findings.md, section 17)."""
+    choice's candidates not yet probed, drawn at random; the choice learns to ask for what the scan would ask given
+    what was really probed (Scan.requests of the rollout's points), except where that was probed already. Why: heads
+    that learned behind the scan's probes alone read any other probe worse (docs/findings.md, section 17: they read
+    a little better for it; a choice that also copied the detours lost)."""
 
     def __init__(self, steps: int, explore: float = 0.3) -> None:
         super().__init__(steps, imitate=True)
@@ -101,4 +100,4 @@ class ExploreAroundPrior(FollowPrior):
         # request k repeats an earlier one: the choice never probes a place twice, so it cannot be copied there
         same = (wanted[:, :, None] - rollout.actions[:, None]).abs().amax(-1) < 1e-4  # (B, k, j)
         earlier = torch.ones(same.shape[1:], dtype=torch.bool, device=same.device).tril(-1)
-        return Imitation(wanted, ~(same & earlier).any(-1), explore=self.explore)
+        return Imitation(wanted, ~(same & earlier).any(-1))
