@@ -42,10 +42,9 @@ def fit_and_test(configs: str | Path | Sequence[str | Path], seed: int, folder: 
     (smoke tests). Returns the accuracy after each probe of every prediction the model logs (`columns`, named as
     hg.lightning.callbacks.per_probe_table names them; `accuracy` and `accuracy_mean_action` are the learned heads'),
     the validation accuracy after the last probe (`val`, same names), the training batches' accuracy after the last
-    probe and touch rate over the last quarter of the diagnostics' rows (`train_last_quarter`: how
-    well it fits training poses, beside how well it generalises; None when nothing trained), the best checkpoint,
-    the CLI arguments (`cli_args`, without the folder's) and the run's facts; the caller adds what it is for and
-    writes it."""
+    probe and touch rate over the last quarter of the diagnostics' rows (`train_last_quarter`: how well it fits
+    training poses, beside how well it generalises; None when nothing trained), the best checkpoint, the CLI
+    arguments (`cli_args`, without the folder's) and the run's facts; the caller adds what it is for and writes it."""
     import torch
 
     from hg.lightning.callbacks import GradientDiagnostics, TrainingClock, per_probe_table

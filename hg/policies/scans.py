@@ -5,8 +5,10 @@ from __future__ import annotations
 from typing import Literal
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
+from hg.nets import candidate_index
 from hg.nets.dims import Dims
 from hg.policies.base import Observation, Policy
 
@@ -118,8 +120,8 @@ class Detours(Policy):
 
     def act(self, obs: Observation, deterministic: bool, generator: torch.Generator) -> Tensor:
         request = self.prior.act(obs, deterministic, generator).cpu()
-        sent = obs.actions[:, :obs.k].cpu()
-        probed = ((sent[:, :, None] - self.candidates).abs().amax(-1) < 1e-4).any(1)  # (B, C)
+        sent = candidate_index(obs.actions[:, :obs.k].cpu(), self.candidates)  # (B, k)
+        probed = F.one_hot(sent, len(self.candidates)).bool().any(1)  # (B, C)
         draw = torch.rand(len(request), len(self.candidates), generator=generator).masked_fill(probed, -1.0)
         detour = torch.rand(len(request), generator=generator) < self.explore
         return torch.where(detour[:, None], self.candidates[draw.argmax(-1)], request)

@@ -98,6 +98,6 @@ class ExploreAroundPrior(FollowPrior):
     def targets(self, policy: Policy, rollout: Rollout) -> Imitation:
         wanted = policy.prior.requests(rollout.points)
         # request k repeats an earlier one: the choice never probes a place twice, so it cannot be copied there
-        same = (wanted[:, :, None] - rollout.actions[:, None]).abs().amax(-1) < 1e-4  # (B, k, j)
-        earlier = torch.ones(same.shape[1:], dtype=torch.bool, device=same.device).tril(-1)
+        same = policy.location.index_of(wanted)[:, :, None] == policy.location.index_of(rollout.actions)[:, None]
+        earlier = torch.ones(same.shape[1:], dtype=torch.bool, device=same.device).tril(-1)  # (k, j): j < k
         return Imitation(wanted, ~(same & earlier).any(-1))
