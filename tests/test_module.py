@@ -23,7 +23,7 @@ from hg.lightning.callbacks import GradientDiagnostics
 from hg.lightning.cli import cli
 from hg.nets import PCRN, FCClassifier, TouchSetClassifier
 from hg.policies import CandidateChoice, GaussianPolicy, LineScan, SidePickingScan
-from hg.rl import ExploreAroundPrior, FollowPrior
+from hg.rl import ExploreAroundPrior, FollowPrior, ImitateBestProbe, Rollout
 from hg.sim import ProbeSimulator, Scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -54,6 +54,8 @@ ROWS = {
                             "parts/touch_sets.yaml"],
     "exploring_choice_on_side_scan": ["side_scan.yaml", "parts/choice_on_scan.yaml", "parts/explore_copy.yaml",
                                       "parts/stable_rl.yaml", "parts/touch_sets.yaml"],
+    "best_probe_choice": ["side_scan.yaml", "parts/choice_on_scan.yaml", "parts/best_probe.yaml",
+                          "parts/stable_rl.yaml", "parts/touch_sets.yaml"],
 }
 # what each config sets, as the configs compose: a later one overrides an earlier one (set_by)
 POLICY = {"pcrn_fc.yaml": "GaussianPolicy", "pcrn_nclass.yaml": "GaussianPolicy", "lstm.yaml": "GaussianPolicy",
@@ -61,10 +63,12 @@ POLICY = {"pcrn_fc.yaml": "GaussianPolicy", "pcrn_nclass.yaml": "GaussianPolicy"
           "gaussian_on_side_scan.yaml": "GaussianPolicy", "planner_copy.yaml": "CandidateChoice",
           "parts/choice_on_scan.yaml": "CandidateChoice"}
 WARMUP = {"gaussian_on_side_scan.yaml": "FollowPrior", "planner_copy.yaml": "ImitateTeacher",
-          "parts/choice_on_scan.yaml": "FollowPrior", "parts/explore_copy.yaml": "ExploreAroundPrior"}
+          "parts/choice_on_scan.yaml": "FollowPrior", "parts/explore_copy.yaml": "ExploreAroundPrior",
+          "parts/best_probe.yaml": "ImitateBestProbe"}
 IMITATES = {"gaussian_on_side_scan.yaml": False, "planner_copy.yaml": True,  # the warm-up copies a teacher or a scan
-            "parts/choice_on_scan.yaml": True, "parts/explore_copy.yaml": True}
-PRIOR = {"gaussian_on_side_scan.yaml": "SidePickingScan", "parts/choice_on_scan.yaml": "SidePickingScan"}
+            "parts/choice_on_scan.yaml": True, "parts/explore_copy.yaml": True, "parts/best_probe.yaml": True}
+PRIOR = {"gaussian_on_side_scan.yaml": "SidePickingScan", "parts/choice_on_scan.yaml": "SidePickingScan",
+         "parts/best_probe.yaml": None}  # None: the part removes the scan
 HEAD = {"pcrn_nclass.yaml": "NClassClassifier", "lstm.yaml": "LinearClassifier"}
 ENCODER = {"lstm.yaml": "LSTMEncoder", "parts/centred_points.yaml": "CentredPCRN"}
 N_PROBES = {"planner_copy.yaml": 10}  # its teachers' probes (args_of); tiny.yaml's 4 otherwise
@@ -109,7 +113,7 @@ def test_composition_fits_and_tests_through_the_cli(row, tmp_path, monkeypatch):
     if repaired:
         assert model.policy.reads_detached and model.policy.count_width == n_probes
     assert type(model.policy).__name__ == set_by(parts, POLICY)
-    assert type(getattr(model.policy, "prior", None)).__name__ == set_by(parts, PRIOR, "NoneType")
+    assert type(getattr(model.policy, "prior", None)).__name__ == (set_by(parts, PRIOR) or "NoneType")
     heads = [type(h).__name__ for h in model.heads]
     assert heads == ([set_by(parts, HEAD, "FCClassifier")] + ["TouchSetClassifier"] * 2 * touch_sets)
     if touch_sets:
@@ -390,7 +394,7 @@ def test_an_exploring_copy_probes_off_the_scan_and_copies_what_the_scan_would_as
     assert not probed_before[detour].any()
     # the targets are the scan's requests after the rollout's points; one the rollout sent earlier is left out
     rollout.actions[:, 0] = wanted[:, 2]  # what the scan asks for third, sent first: its third is not copied
-    imitation = warmup.targets(model.policy, rollout)
+    imitation = warmup.targets(model, rollout, batch["labels"], 0)
     valid = imitation.valid
     assert torch.equal(imitation.requests, wanted) and not valid[:, 2].any() and valid[:, 0].all()
     # the copy's cross-entropy: the scan's requests in the states the detours led to
@@ -408,6 +412,50 @@ def test_an_exploring_copy_probes_off_the_scan_and_copies_what_the_scan_would_as
     terms, _ = model.evaluate(rollout, batch["labels"], "imitate")
     choices = torch.tensor([[float(20 - len(set(row[:k]))) for k in range(4)] for row in sent])
     torch.testing.assert_close(terms["loss_imitation"], choices.log()[valid].mean())
+    model.sim.close()
+
+
+def test_the_best_probe_warmup_teaches_the_candidate_the_heads_read_best_at_one_probe(data):
+    """ImitateBestProbe: at one probe per step the target is the sent request or a candidate not probed before, the
+    one after which the heads read log p(true class) highest, as the heads read it after the same earlier probes;
+    the choice's cross-entropy there is its imitation term, which reaches the location network."""
+    warmup = ImitateBestProbe(2, samples=5)
+    model = make_model(data, policy=lambda dims: CandidateChoice(dims, places=None, leans=(0.6, 1.0), hidden=32),
+                       heads=[lambda dims: FCClassifier(dims, hidden=32),
+                              lambda dims: TouchSetClassifier(dims, shared=(16, 32), hidden=32, last_only=True)], warmup=warmup)
+    batch = first_batch(data)
+    labels, seed = batch["labels"], int(batch["seed"])
+    rollout = model.roll(labels, batch["poses"], seed, policy=warmup.prober(model.policy))
+    imitation = warmup.targets(model, rollout, labels, seed)
+    k = int(imitation.valid[0].nonzero())
+    assert imitation.valid.sum(1).eq(1).all() and imitation.valid[:, k].all()
+    assert torch.equal(imitation.requests[:, :k], rollout.actions[:, :k])
+    index = model.policy.location.index_of(imitation.requests[:, k])
+    probed = model.policy.location.index_of(rollout.actions[:, :k])
+    assert not (probed == index[:, None]).any()  # never a candidate probed before
+    repeat = warmup.targets(model, rollout, labels, seed)  # the same seed, the same draws
+    assert torch.equal(repeat.requests, imitation.requests) and torch.equal(repeat.valid, imitation.valid)
+
+    def read_after(requests):  # log p(true class) after probes 1..k and these requests, probed on the same episodes
+        model.sim.reset(labels.numpy(), batch["poses"].numpy())
+        actions = torch.cat([rollout.actions[:, :k], requests[:, None]], 1)
+        points = torch.stack([warmup.probe(model, actions[:, j]) for j in range(k + 1)], 1)
+        logits = model.predict(Rollout(actions, actions, points, torch.ones(len(labels), k + 1, dtype=torch.bool)))[0]
+        return logits[:, k].log_softmax(-1).gather(1, labels[:, None]).squeeze(1)
+
+    with torch.no_grad():
+        best, sent = read_after(imitation.requests[:, k]), read_after(rollout.actions[:, k])
+    assert (best >= sent - 1e-5).all() and (best > sent + 1e-5).any()  # better than what was sent, somewhere
+    model.sim.reset(labels.numpy(), batch["poses"].numpy())
+    terms, _ = model.evaluate(rollout, labels, "imitate", seed)
+    rep = model.encoder(rollout.requests, rollout.points)
+    log_pi = model.policy.evaluate(rep, rollout.actions, rollout.points, chosen=imitation.requests).log_pi
+    torch.testing.assert_close(terms["loss_imitation"], -log_pi[:, k].mean())
+    assert reaches(model, terms["loss_imitation"])["location"]
+    with pytest.raises(ValueError, match="warmup.samples=0"):
+        ImitateBestProbe(2, samples=0)
+    with pytest.raises(ValueError, match="ImitateBestProbe compares the policy's candidates; GaussianPolicy"):
+        make_model(data, warmup=ImitateBestProbe(2))
     model.sim.close()
 
 

@@ -103,24 +103,27 @@ class HapticGlance(pl.LightningModule):
                        self.hparams.point_scale, self.encoder, deterministic, requests, faults)
 
     def predict(self, rollout: Rollout) -> tuple[Tensor, Tensor]:
-        """The heads' summed logits (B, N, C) after each probe, and the encoder's representation (B, N, D)."""
+        """The heads' summed logits (B, N, C) after each probe, and the encoder's representation (B, N, D). Heads of
+        the whole episode (`last_only`) read only whole episodes (n_probes probes): a shorter rollout is a prefix."""
         rep = self.encoder(rollout.requests, rollout.points)
         every = [head(rep, rollout.points) for head in self.heads if not head.last_only]
-        last = [head(rep, rollout.points) for head in self.heads if head.last_only]
+        whole = rollout.points.shape[1] == self.hparams.n_probes
+        last = [head(rep, rollout.points) for head in self.heads if head.last_only and whole]
         logits = sum(every)
         if last:  # heads of the whole episode replace the prediction after the last probe
             logits = torch.cat([logits[:, :-1], sum(last)], 1)
         return logits, rep
 
     # -- loss ----------------------------------------------------------------------------------------
-    def evaluate(self, rollout: Rollout, labels: Tensor, regime: Regime) -> tuple[dict[str, Tensor], Tensor]:
-        """The loss terms of a finished rollout and the logits (B, N, C). Eq. (6) is self.loss; the terms beyond the
-        paper (the imitation of a teacher, the policy's own, e.g. its anchor) are named and added here, and only
-        here."""
+    def evaluate(self, rollout: Rollout, labels: Tensor, regime: Regime, seed: int = 0
+                 ) -> tuple[dict[str, Tensor], Tensor]:
+        """The loss terms of a finished rollout (the last the simulator made, drawn with `seed`) and the logits (B, N,
+        C). Eq. (6) is self.loss; the terms beyond the paper (the imitation of a teacher, the policy's own, e.g. its
+        anchor) are named and added here, and only here."""
         logits, rep = self.predict(rollout)
         evaluated = imitation = None
         if regime == "imitate":  # what the warm-up would ask for in these states; by default what it sent
-            imitation = self.warmup.targets(self.policy, rollout) if self.warmup else Imitation(rollout.actions)
+            imitation = self.warmup.targets(self, rollout, labels, seed) if self.warmup else Imitation(rollout.actions)
         if regime != "classify" and isinstance(self.policy, LearnedPolicy):
             evaluated = self.policy.evaluate(rep, rollout.actions, rollout.points,
                                              chosen=None if imitation is None else imitation.requests)
@@ -152,7 +155,7 @@ class HapticGlance(pl.LightningModule):
         else:
             rollout = self.roll(labels, poses, seed)
             regime = "reinforce" if self.policy.learned else "classify"
-        terms, _ = self.evaluate(rollout, labels, regime)
+        terms, _ = self.evaluate(rollout, labels, regime, seed)
         if not torch.isfinite(terms["loss"]):
             raise FloatingPointError(f"non-finite loss {terms['loss'].item()} at global step {self.global_step} "
                                      f"(terms: { {k: round(v.item(), 4) for k, v in terms.items()} })")

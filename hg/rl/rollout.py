@@ -1,4 +1,5 @@
-"""Probing B episodes N times with a policy: the one place the simulator is called, once per probe."""
+"""Probing B episodes N times with a policy: where the simulator is called, once per probe (a warm-up that looks at
+other candidates, ImitateBestProbe, probes the same episodes again)."""
 from __future__ import annotations
 
 from dataclasses import dataclass

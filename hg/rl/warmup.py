@@ -6,8 +6,24 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from typing import Protocol
+
+import numpy as np
+
 from hg.policies import Detours, Imitation, Policy
 from hg.rl.rollout import Rollout
+from hg.sim import ProbeSimulator
+
+
+class Model(Protocol):
+    """What a warm-up's targets may read of the model (hg.lightning.HapticGlance): its policy, its simulator, still
+    holding the rollout's episodes, and its heads' prediction after each probe."""
+
+    policy: Policy
+    sim: ProbeSimulator
+    hparams: dict  # point_scale: how a rollout scales its points
+
+    def predict(self, rollout: Rollout) -> tuple[Tensor, Tensor]: ...
 
 
 class Warmup:
@@ -30,9 +46,9 @@ class Warmup:
         """What probes when the warm-up gives no requests."""
         return policy
 
-    def targets(self, policy: Policy, rollout: Rollout) -> Imitation:
-        """What an imitating policy learns to ask for in the states of `rollout`: by default the requests the warm-up
-        sent."""
+    def targets(self, model: Model, rollout: Rollout, labels: Tensor, seed: int) -> Imitation:
+        """What an imitating policy learns to ask for in the states of `rollout` (of the episodes `labels`, drawn with
+        the batch's `seed`): by default the requests the warm-up sent."""
         return Imitation(rollout.actions)
 
 
@@ -95,9 +111,72 @@ class ExploreAroundPrior(FollowPrior):
                              f"{type(policy).__name__} has none (hg.policies.CandidateChoice has)")
         return Detours(prior, policy.candidates, self.explore)
 
-    def targets(self, policy: Policy, rollout: Rollout) -> Imitation:
+    def targets(self, model: Model, rollout: Rollout, labels: Tensor, seed: int) -> Imitation:
+        policy = model.policy
         wanted = policy.prior.requests(rollout.points)
         # request k repeats an earlier one: the choice never probes a place twice, so it cannot be copied there
         same = policy.location.index_of(wanted)[:, :, None] == policy.location.index_of(rollout.actions)[:, None]
         earlier = torch.ones(same.shape[1:], dtype=torch.bool, device=same.device).tril(-1)  # (k, j): j < k
         return Imitation(wanted, ~(same & earlier).any(-1))
+
+
+class ImitateBestProbe(Warmup):
+    """The choice probes with its own draws and learns, at one probe k of each training step (drawn at random), to
+    ask for whichever of `samples` candidates not yet probed, or the request it sent, the heads as they stand read
+    best: log p(true class) after probes 1..k and that candidate. The targets are privileged (each candidate is
+    probed on the training episode itself, pose and all); the choice learns from what it has read which candidate
+    that tends to be. Why: the class reward of one sampled probe per state is too noisy to move a choice anywhere
+    (docs/findings.md, sections 15-17); this compares probes in the same state, with the same heads, every step.
+    Without a prior scan: a learned policy that starts from no scan at all."""
+
+    imitate = True
+
+    def __init__(self, steps: int, samples: int = 8) -> None:
+        super().__init__(steps)
+        if samples < 1:
+            raise ValueError(f"warmup.samples={samples}: compare the sent request with at least 1 other candidate")
+        self.samples = samples
+
+    def prober(self, policy: Policy) -> Policy:
+        if getattr(policy, "candidates", None) is None:
+            raise ValueError(f"model.warmup: ImitateBestProbe compares the policy's candidates; {type(policy).__name__} "
+                             "has none (hg.policies.CandidateChoice has)")
+        return policy
+
+    @torch.no_grad()
+    def targets(self, model: Model, rollout: Rollout, labels: Tensor, seed: int) -> Imitation:
+        policy, (batch, n_probes) = model.policy, rollout.actions.shape[:2]
+        rng = np.random.default_rng((seed, 1))  # not the rollout's stream (seed alone), nor the data's
+        k = int(rng.integers(n_probes))
+        sent = policy.location.index_of(rollout.actions[:, :k + 1])  # (B, k + 1): probes 1..k and the one sent
+        n_candidates = len(policy.candidates)
+        samples = min(self.samples, n_candidates - k - 1)
+        # candidates not probed before and not sent, drawn without replacement: the lowest of random keys
+        keys = torch.from_numpy(rng.random((batch, n_candidates))).to(sent.device)
+        keys = keys.scatter(1, sent, 2.0)  # taken: never drawn
+        drawn = torch.cat([sent[:, k:], keys.argsort(1)[:, :samples]], 1)  # (B, 1 + samples), the sent one first
+        requests = policy.candidates[drawn]  # (B, S, 4)
+        points = torch.stack([self.probe(model, requests[:, s]) for s in range(drawn.shape[1])], 1)
+        # each candidate after the rollout's probes 1..k: B x S episodes of k + 1 probes
+        branched = [branches(x, last, k) for x, last in ((rollout.actions, requests), (rollout.requests, requests),
+                                                          (rollout.points, points))]
+        logits = model.predict(Rollout(*branched, reached=torch.ones(branched[0].shape[:2], dtype=torch.bool)))[0][:, k]
+        read = logits.view(*drawn.shape, -1).log_softmax(-1).gather(-1, labels[:, None, None].expand(*drawn.shape, 1))
+        wanted = rollout.actions.clone()
+        wanted[:, k] = requests[torch.arange(batch), read.squeeze(-1).argmax(1)]
+        valid = torch.zeros(batch, n_probes, dtype=torch.bool, device=wanted.device)
+        valid[:, k] = True
+        return Imitation(wanted, valid)
+
+    @staticmethod
+    def probe(model: Model, requests: Tensor) -> Tensor:
+        """(B, 4) candidate requests probed on the rollout's episodes -> (B, 4) points, scaled as a rollout's."""
+        points = torch.from_numpy(model.sim.probe(requests.cpu().double().numpy()).points).float()
+        points[:, :3] *= model.hparams.point_scale
+        return points.to(requests.device)
+
+
+def branches(prefix: Tensor, last: Tensor, k: int) -> Tensor:
+    """prefix (B, N, F) and last (B, S, F) -> (B x S, k + 1, F): rows 1..k of prefix followed by each of the S."""
+    head = prefix[:, None, :k].expand(-1, last.shape[1], -1, -1)
+    return torch.cat([head, last[:, :, None]], 2).flatten(0, 1)
