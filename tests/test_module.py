@@ -420,9 +420,10 @@ def test_the_best_probe_warmup_teaches_the_candidate_the_heads_read_best_at_one_
     one after which the heads read log p(true class) highest, as the heads read it after the same earlier probes;
     the choice's cross-entropy there is its imitation term, which reaches the location network."""
     warmup = ImitateBestProbe(2, samples=5)
+    heads = [lambda dims: FCClassifier(dims, hidden=32),  # and one that reads whole episodes only
+             lambda dims: TouchSetClassifier(dims, shared=(16, 32), hidden=32, last_only=True)]
     model = make_model(data, policy=lambda dims: CandidateChoice(dims, places=None, leans=(0.6, 1.0), hidden=32),
-                       heads=[lambda dims: FCClassifier(dims, hidden=32),
-                              lambda dims: TouchSetClassifier(dims, shared=(16, 32), hidden=32, last_only=True)], warmup=warmup)
+                       heads=heads, warmup=warmup)
     batch = first_batch(data)
     labels, seed = batch["labels"], int(batch["seed"])
     rollout = model.roll(labels, batch["poses"], seed, policy=warmup.prober(model.policy))

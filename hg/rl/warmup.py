@@ -139,8 +139,8 @@ class ImitateBestProbe(Warmup):
 
     def prober(self, policy: Policy) -> Policy:
         if getattr(policy, "candidates", None) is None:
-            raise ValueError(f"model.warmup: ImitateBestProbe compares the policy's candidates; {type(policy).__name__} "
-                             "has none (hg.policies.CandidateChoice has)")
+            raise ValueError(f"model.warmup: ImitateBestProbe compares the policy's candidates; "
+                             f"{type(policy).__name__} has none (hg.policies.CandidateChoice has)")
         return policy
 
     @torch.no_grad()
