@@ -106,7 +106,7 @@ def network_ms(model: pl.LightningModule, batch: dict, repeats: int) -> dict[str
                                model.hparams.point_scale, model.encoder)
         t1 = time.perf_counter()
         with counters[1]:
-            terms, _ = model.evaluate(replayed, labels, regime)
+            terms, _ = model.evaluate(replayed, labels, regime, seed)
         t2 = time.perf_counter()
         with counters[2]:
             optimizer.zero_grad()

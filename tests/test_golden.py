@@ -86,7 +86,7 @@ def test_composed_model_reproduces_the_golden_numbers(name: str, tmp_path: Path)
     assert labels.tolist() == record["labels"]
     model.train()
     rollout = model.roll(labels, poses, SEED)
-    terms, logits = model.evaluate(rollout, labels, "reinforce" if model.policy.learned else "classify")
+    terms, logits = model.evaluate(rollout, labels, "reinforce" if model.policy.learned else "classify", SEED)
     close(rollout.requests, record["train"]["requests"])
     close(rollout.points, record["train"]["points"])
     close(logits, record["train"]["logits"])
@@ -94,11 +94,11 @@ def test_composed_model_reproduces_the_golden_numbers(name: str, tmp_path: Path)
     if "scan" in record:  # the warm-up, following the policy's prior scan
         scan = model.roll(labels, poses, SEED, policy=model.policy.prior)
         close(scan.requests, record["scan"]["requests"])
-        same_terms(model.evaluate(scan, labels, "classify")[0], record["scan"]["terms"])
+        same_terms(model.evaluate(scan, labels, "classify", SEED)[0], record["scan"]["terms"])
     if "imitate" in record:
         # the old imitation step logged the 0/1 reward whatever the config's; it now logs the config's (log_gain)
         old = {k: v for k, v in record["imitate"]["terms"].items() if k != "reward"}
-        same_terms(model.evaluate(rollout, labels, "imitate")[0], old)
+        same_terms(model.evaluate(rollout, labels, "imitate", SEED)[0], old)
     model.eval()
     with torch.no_grad():
         rollout = model.roll(labels, poses, SEED, deterministic=model.policy.learned)

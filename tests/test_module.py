@@ -24,6 +24,7 @@ from hg.lightning.cli import cli
 from hg.nets import PCRN, FCClassifier, TouchSetClassifier
 from hg.policies import CandidateChoice, GaussianPolicy, LineScan, SidePickingScan
 from hg.rl import ExploreAroundPrior, FollowPrior, ImitateBestProbe, Rollout
+from hg.rl.rollout import probe_points
 from hg.sim import ProbeSimulator, Scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -330,15 +331,16 @@ def test_each_term_of_the_hybrid_rule_trains_what_it_should(data):
     model = make_model(data, heads=[lambda d: FCClassifier(d, hidden=32), lambda d: TouchSetClassifier(d)])
     batch = first_batch(data)
     rollout = model.roll(batch["labels"], batch["poses"], int(batch["seed"]))
-    terms, _ = model.evaluate(rollout, batch["labels"], "reinforce")
+    terms, _ = model.evaluate(rollout, batch["labels"], "reinforce", int(batch["seed"]))
     assert reaches(model, terms["loss_policy"]) == {"encoder": True, "heads": False, "location": True,
                                                     "baseline": False}
     assert reaches(model, terms["loss_ce"]) == {"encoder": True, "heads": True, "location": False, "baseline": False}
     assert reaches(model, terms["loss_baseline"]) == {"encoder": False, "heads": False, "location": False,
                                                       "baseline": True}
-    classify, _ = model.evaluate(rollout, batch["labels"], "classify")  # a fixed policy's, or a warm-up's
+    # a fixed policy's, or a warm-up's
+    classify, _ = model.evaluate(rollout, batch["labels"], "classify", int(batch["seed"]))
     assert "loss_policy" not in classify and torch.equal(classify["loss"], classify["loss_ce"])
-    imitate, _ = model.evaluate(rollout, batch["labels"], "imitate")
+    imitate, _ = model.evaluate(rollout, batch["labels"], "imitate", int(batch["seed"]))
     assert "loss_policy" not in imitate
     torch.testing.assert_close(imitate["loss"], imitate["loss_ce"] + imitate["loss_imitation"])
     model.sim.close()
@@ -394,11 +396,11 @@ def test_an_exploring_copy_probes_off_the_scan_and_copies_what_the_scan_would_as
     assert not probed_before[detour].any()
     # the targets are the scan's requests after the rollout's points; one the rollout sent earlier is left out
     rollout.actions[:, 0] = wanted[:, 2]  # what the scan asks for third, sent first: its third is not copied
-    imitation = warmup.targets(model, rollout, batch["labels"], 0)
+    imitation = warmup.targets(model, rollout, batch["labels"], int(batch["seed"]))
     valid = imitation.valid
     assert torch.equal(imitation.requests, wanted) and not valid[:, 2].any() and valid[:, 0].all()
     # the copy's cross-entropy: the scan's requests in the states the detours led to
-    terms, _ = model.evaluate(rollout, batch["labels"], "imitate")
+    terms, _ = model.evaluate(rollout, batch["labels"], "imitate", int(batch["seed"]))
     rep = model.encoder(rollout.requests, rollout.points)
     log_pi = model.policy.evaluate(rep, rollout.actions, rollout.points, chosen=wanted).log_pi
     torch.testing.assert_close(terms["loss_imitation"], -log_pi[valid].mean())
@@ -409,50 +411,62 @@ def test_an_exploring_copy_probes_off_the_scan_and_copies_what_the_scan_would_as
     last = model.policy.location.net[-1]
     with torch.no_grad():
         last.weight.zero_(), last.bias.zero_()
-    terms, _ = model.evaluate(rollout, batch["labels"], "imitate")
+    terms, _ = model.evaluate(rollout, batch["labels"], "imitate", int(batch["seed"]))
     choices = torch.tensor([[float(20 - len(set(row[:k]))) for k in range(4)] for row in sent])
     torch.testing.assert_close(terms["loss_imitation"], choices.log()[valid].mean())
     model.sim.close()
 
 
 def test_the_best_probe_warmup_teaches_the_candidate_the_heads_read_best_at_one_probe(data):
-    """ImitateBestProbe: at one probe per step the target is the sent request or a candidate not probed before, the
-    one after which the heads read log p(true class) highest, as the heads read it after the same earlier probes;
-    the choice's cross-entropy there is its imitation term, which reaches the location network."""
-    warmup = ImitateBestProbe(2, samples=5)
+    """ImitateBestProbe: at one probe k per step (any of them, by the seed) the target is, of the sent request and
+    the candidates not probed before, the one after which the heads read log p(true class) highest, read after the
+    rollout's probes 1..k as the whole rollout reads its row k; the choice's cross-entropy there is its imitation
+    term, which reaches the location network; and the rollout that follows is untouched by its probes."""
+    warmup = ImitateBestProbe(2, samples=100)  # more than the 28 candidates: every one is compared
     heads = [lambda dims: FCClassifier(dims, hidden=32),  # and one that reads whole episodes only
              lambda dims: TouchSetClassifier(dims, shared=(16, 32), hidden=32, last_only=True)]
     model = make_model(data, policy=lambda dims: CandidateChoice(dims, places=None, leans=(0.6, 1.0), hidden=32),
                        heads=heads, warmup=warmup)
+    location, candidates = model.policy.location, model.policy.candidates
     batch = first_batch(data)
-    labels, seed = batch["labels"], int(batch["seed"])
-    rollout = model.roll(labels, batch["poses"], seed, policy=warmup.prober(model.policy))
-    imitation = warmup.targets(model, rollout, labels, seed)
-    k = int(imitation.valid[0].nonzero())
-    assert imitation.valid.sum(1).eq(1).all() and imitation.valid[:, k].all()
-    assert torch.equal(imitation.requests[:, :k], rollout.actions[:, :k])
-    index = model.policy.location.index_of(imitation.requests[:, k])
-    probed = model.policy.location.index_of(rollout.actions[:, :k])
-    assert not (probed == index[:, None]).any()  # never a candidate probed before
-    repeat = warmup.targets(model, rollout, labels, seed)  # the same seed, the same draws
-    assert torch.equal(repeat.requests, imitation.requests) and torch.equal(repeat.valid, imitation.valid)
+    labels, poses, seed = batch["labels"], batch["poses"], int(batch["seed"])
+    rollout = model.roll(labels, poses, seed, policy=warmup.prober(model.policy))
+    with torch.no_grad():
+        whole = model.predict(rollout)[0].log_softmax(-1).gather(-1, labels[:, None, None].expand(-1, 4, 1))[..., 0]
 
-    def read_after(requests):  # log p(true class) after probes 1..k and these requests, probed on the same episodes
-        model.sim.reset(labels.numpy(), batch["poses"].numpy())
+    def read_after(k, requests):  # log p(true class) after probes 1..k and these requests (B, 4)
         actions = torch.cat([rollout.actions[:, :k], requests[:, None]], 1)
-        points = torch.stack([warmup.probe(model, actions[:, j]) for j in range(k + 1)], 1)
-        logits = model.predict(Rollout(actions, actions, points, torch.ones(len(labels), k + 1, dtype=torch.bool)))[0]
+        points = torch.stack([probe_points(model.sim, actions[:, j], model.hparams.point_scale)[0]
+                              for j in range(k + 1)], 1)
+        with torch.no_grad():
+            logits = model.predict(Rollout(actions, actions, points, torch.ones(8, k + 1, dtype=torch.bool)))[0]
         return logits[:, k].log_softmax(-1).gather(1, labels[:, None]).squeeze(1)
 
-    with torch.no_grad():
-        best, sent = read_after(imitation.requests[:, k]), read_after(rollout.actions[:, k])
-    assert (best >= sent - 1e-5).all() and (best > sent + 1e-5).any()  # better than what was sent, somewhere
-    model.sim.reset(labels.numpy(), batch["poses"].numpy())
-    terms, _ = model.evaluate(rollout, labels, "imitate", seed)
-    rep = model.encoder(rollout.requests, rollout.points)
-    log_pi = model.policy.evaluate(rep, rollout.actions, rollout.points, chosen=imitation.requests).log_pi
+    seen = set()
+    for draw in range(12):
+        imitation = warmup.targets(model, rollout, labels, draw)
+        k = int(imitation.valid[0].nonzero())
+        seen.add(k)
+        assert imitation.valid.sum(1).eq(1).all() and imitation.valid[:, k].all()
+        index, probed = location.index_of(imitation.requests[:, k]), location.index_of(rollout.actions[:, :k])
+        assert not (probed == index[:, None]).any()  # never a candidate probed before
+        torch.testing.assert_close(read_after(k, rollout.actions[:, k]), whole[:, k])  # a branch reads as the whole
+        readings = torch.stack([read_after(k, candidate.expand(8, 4)) for candidate in candidates], 1)
+        readings[torch.arange(8)[:, None], probed] = -float("inf")  # the ones it may not ask for
+        torch.testing.assert_close(read_after(k, imitation.requests[:, k]), readings.max(1).values)
+    assert seen == {0, 1, 2, 3}  # the last probe too, where the head of whole episodes reads
+    repeat = warmup.targets(model, rollout, labels, draw)  # the same seed, the same draws
+    assert torch.equal(repeat.requests, imitation.requests) and torch.equal(repeat.valid, imitation.valid)
+    again = model.roll(labels, poses, seed, policy=warmup.prober(model.policy))
+    assert torch.equal(again.points, rollout.points) and torch.equal(again.actions, rollout.actions)
+    terms, _ = model.evaluate(again, labels, "imitate", draw)
+    rep = model.encoder(again.requests, again.points)
+    log_pi = model.policy.evaluate(rep, again.actions, again.points, chosen=imitation.requests).log_pi
     torch.testing.assert_close(terms["loss_imitation"], -log_pi[:, k].mean())
     assert reaches(model, terms["loss_imitation"])["location"]
+    with pytest.raises(RuntimeError, match="model.sim no longer holds the rollout's episodes"):
+        model.sim.reset(((labels + 1) % data.n_classes).numpy(), poses.numpy())
+        warmup.targets(model, again, labels, draw)
     with pytest.raises(ValueError, match="warmup.samples=0"):
         ImitateBestProbe(2, samples=0)
     with pytest.raises(ValueError, match="ImitateBestProbe compares the policy's candidates; GaussianPolicy"):
@@ -560,7 +574,7 @@ def test_touch_sets_add_up_and_the_last_only_one_replaces_the_last_prediction(da
                                                      lambda d: TouchSetClassifier(d, mirror=True, last_only=True)])
     batch = first_batch(data)
     rollout = model.roll(batch["labels"], batch["poses"], int(batch["seed"]))
-    terms, logits = model.evaluate(rollout, batch["labels"], "classify")
+    terms, logits = model.evaluate(rollout, batch["labels"], "classify", int(batch["seed"]))
     fc, every, last = model.heads
     rep = model.encoder(rollout.requests, rollout.points)
     shared = fc(rep, rollout.points) + every(rep, rollout.points)

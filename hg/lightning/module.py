@@ -115,8 +115,7 @@ class HapticGlance(pl.LightningModule):
         return logits, rep
 
     # -- loss ----------------------------------------------------------------------------------------
-    def evaluate(self, rollout: Rollout, labels: Tensor, regime: Regime, seed: int = 0
-                 ) -> tuple[dict[str, Tensor], Tensor]:
+    def evaluate(self, rollout: Rollout, labels: Tensor, regime: Regime, seed: int) -> tuple[dict[str, Tensor], Tensor]:
         """The loss terms of a finished rollout (the last the simulator made, drawn with `seed`) and the logits (B, N,
         C). Eq. (6) is self.loss; the terms beyond the paper (the imitation of a teacher, the policy's own, e.g. its
         anchor) are named and added here, and only here."""

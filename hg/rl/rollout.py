@@ -1,5 +1,5 @@
-"""Probing B episodes N times with a policy: where the simulator is called, once per probe (a warm-up that looks at
-other candidates, ImitateBestProbe, probes the same episodes again)."""
+"""Probing B episodes N times with a policy: where the simulator is called, once per probe (and by a warm-up that
+probes other candidates on the same episodes, ImitateBestProbe, through probe_points)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -8,7 +8,7 @@ import torch
 from torch import Tensor, nn
 
 from hg.policies import Observation, Policy
-from hg.sim import ProbeSimulator
+from hg.sim import ProbeResult, ProbeSimulator
 from hg.sim.robot import achieved
 
 
@@ -47,12 +47,20 @@ def rollout(sim: ProbeSimulator, policy: Policy, labels: Tensor, poses: Tensor, 
         if not torch.isfinite(action).all():
             raise FloatingPointError(f"non-finite probe request from {type(policy).__name__} at probe {k + 1}")
         actions[:, k] = action
-        result = sim.probe(action.clamp(-1, 1).double().numpy(), None if faults is None else faults[:, k].numpy())
-        points[:, k] = torch.from_numpy(result.points).float()
-        points[:, k, :3] *= point_scale  # the policy must see what the heads will see
+        points[:, k], result = probe_points(sim, action, point_scale, None if faults is None else faults[:, k])
         if sim.arm is not None:
             reached[:, k] = torch.from_numpy(achieved(result.pose_error))
         if reads_encoder and k + 1 < n_probes:  # the last representation is never read by the policy
             rep, memory = encoder.step(action.clamp(-1, 1).to(device), points[:, k].to(device), memory)
             rep_sum = rep if rep_sum is None else rep_sum + rep
     return Rollout(actions.to(device), actions.clamp(-1, 1).to(device), points.to(device), reached.to(device))
+
+
+def probe_points(sim: ProbeSimulator, requests: Tensor, point_scale: float, faults: Tensor | None = None
+                 ) -> tuple[Tensor, ProbeResult]:
+    """Probe each episode of the simulator's last reset once with raw requests (B, 4), clamped to [-1, 1]: the points
+    (B, 4) as the policy and the heads read them (X, Y, Z times point_scale, T), and the simulator's result."""
+    result = sim.probe(requests.cpu().clamp(-1, 1).double().numpy(), None if faults is None else faults.cpu().numpy())
+    points = torch.from_numpy(result.points).float()
+    points[:, :3] *= point_scale  # the policy must see what the heads will see
+    return points, result

@@ -3,15 +3,14 @@ itself untrained, its prior scan (with random detours), or a teacher's recorded 
 learn meanwhile."""
 from __future__ import annotations
 
+from typing import Any, Protocol
+
+import numpy as np
 import torch
 from torch import Tensor
 
-from typing import Protocol
-
-import numpy as np
-
 from hg.policies import Detours, Imitation, Policy
-from hg.rl.rollout import Rollout
+from hg.rl.rollout import Rollout, probe_points
 from hg.sim import ProbeSimulator
 
 
@@ -21,7 +20,7 @@ class Model(Protocol):
 
     policy: Policy
     sim: ProbeSimulator
-    hparams: dict  # point_scale: how a rollout scales its points
+    hparams: Any  # .point_scale: how a rollout scales its points
 
     def predict(self, rollout: Rollout) -> tuple[Tensor, Tensor]: ...
 
@@ -106,9 +105,7 @@ class ExploreAroundPrior(FollowPrior):
 
     def prober(self, policy: Policy) -> Policy:
         prior = super().prober(policy)
-        if getattr(policy, "candidates", None) is None:
-            raise ValueError(f"model.warmup: ExploreAroundPrior draws its detours among the policy's candidates; "
-                             f"{type(policy).__name__} has none (hg.policies.CandidateChoice has)")
+        require_candidates(policy, "ExploreAroundPrior draws its detours among")
         return Detours(prior, policy.candidates, self.explore)
 
     def targets(self, model: Model, rollout: Rollout, labels: Tensor, seed: int) -> Imitation:
@@ -133,19 +130,24 @@ class ImitateBestProbe(Warmup):
 
     def __init__(self, steps: int, samples: int = 8) -> None:
         super().__init__(steps)
-        if samples < 1:
+        if samples < 1:  # fewer are compared where fewer are left (none at the last probe of n_probes candidates)
             raise ValueError(f"warmup.samples={samples}: compare the sent request with at least 1 other candidate")
         self.samples = samples
 
     def prober(self, policy: Policy) -> Policy:
-        if getattr(policy, "candidates", None) is None:
-            raise ValueError(f"model.warmup: ImitateBestProbe compares the policy's candidates; "
-                             f"{type(policy).__name__} has none (hg.policies.CandidateChoice has)")
+        require_candidates(policy, "ImitateBestProbe compares")
         return policy
 
     @torch.no_grad()
     def targets(self, model: Model, rollout: Rollout, labels: Tensor, seed: int) -> Imitation:
+        """The best of the sent request and the drawn candidates at probe k, by the heads' log p(true class) after
+        probes 1..k and it (a tie goes to the sent one); every other probe is left out. Row k of a branch of k + 1
+        probes is what the full rollout's row k would be: every encoder and head reads probes 1..k + 1 only, and a
+        head of whole episodes only where k + 1 = n_probes (HapticGlance.predict)."""
         policy, (batch, n_probes) = model.policy, rollout.actions.shape[:2]
+        if not np.array_equal(model.sim.labels, labels.cpu().numpy()):
+            raise RuntimeError("ImitateBestProbe.targets: model.sim no longer holds the rollout's episodes (probe the "
+                               "candidates right after the rollout, before the simulator is reset)")
         rng = np.random.default_rng((seed, 1))  # not the rollout's stream (seed alone), nor the data's
         k = int(rng.integers(n_probes))
         sent = policy.location.index_of(rollout.actions[:, :k + 1])  # (B, k + 1): probes 1..k and the one sent
@@ -156,24 +158,27 @@ class ImitateBestProbe(Warmup):
         keys = keys.scatter(1, sent, 2.0)  # taken: never drawn
         drawn = torch.cat([sent[:, k:], keys.argsort(1)[:, :samples]], 1)  # (B, 1 + samples), the sent one first
         requests = policy.candidates[drawn]  # (B, S, 4)
-        points = torch.stack([self.probe(model, requests[:, s]) for s in range(drawn.shape[1])], 1)
-        # each candidate after the rollout's probes 1..k: B x S episodes of k + 1 probes
-        branched = [branches(x, last, k) for x, last in ((rollout.actions, requests), (rollout.requests, requests),
-                                                          (rollout.points, points))]
-        logits = model.predict(Rollout(*branched, reached=torch.ones(branched[0].shape[:2], dtype=torch.bool)))[0][:, k]
+        others = [probe_points(model.sim, requests[:, s], model.hparams.point_scale)[0].to(requests.device)
+                  for s in range(1, drawn.shape[1])]
+        points = torch.stack([rollout.points[:, k], *others], 1)  # the sent one's: what the rollout read
+        logits = model.predict(Rollout(actions=branches(rollout.actions, requests, k),
+                                       requests=branches(rollout.requests, requests, k),
+                                       points=branches(rollout.points, points, k),
+                                       reached=torch.ones(batch * drawn.shape[1], k + 1, dtype=torch.bool,
+                                                          device=requests.device)))[0][:, k]
         read = logits.view(*drawn.shape, -1).log_softmax(-1).gather(-1, labels[:, None, None].expand(*drawn.shape, 1))
         wanted = rollout.actions.clone()
-        wanted[:, k] = requests[torch.arange(batch), read.squeeze(-1).argmax(1)]
+        wanted[:, k] = requests[torch.arange(batch, device=requests.device), read.squeeze(-1).argmax(1)]
         valid = torch.zeros(batch, n_probes, dtype=torch.bool, device=wanted.device)
         valid[:, k] = True
         return Imitation(wanted, valid)
 
-    @staticmethod
-    def probe(model: Model, requests: Tensor) -> Tensor:
-        """(B, 4) candidate requests probed on the rollout's episodes -> (B, 4) points, scaled as a rollout's."""
-        points = torch.from_numpy(model.sim.probe(requests.cpu().double().numpy()).points).float()
-        points[:, :3] *= model.hparams.point_scale
-        return points.to(requests.device)
+
+def require_candidates(policy: Policy, who: str) -> None:
+    """Refuse a policy that chooses among no candidates, for a warm-up that draws or compares them."""
+    if getattr(policy, "candidates", None) is None:
+        raise ValueError(f"model.warmup: {who} the policy's candidates; {type(policy).__name__} has none "
+                         "(hg.policies.CandidateChoice has)")
 
 
 def branches(prefix: Tensor, last: Tensor, k: int) -> Tensor:
