@@ -464,6 +464,18 @@ def test_the_best_probe_warmup_teaches_the_candidate_the_heads_read_best_at_one_
     log_pi = model.policy.evaluate(rep, again.actions, again.points, chosen=imitation.requests).log_pi
     torch.testing.assert_close(terms["loss_imitation"], -log_pi[:, k].mean())
     assert reaches(model, terms["loss_imitation"])["location"]
+    # comparing 2 drawn candidates with the sent one, the choice is copied among those 3
+    few = ImitateBestProbe(2, samples=2).targets(model, again, labels, draw)
+    sent = location.index_of(again.actions[:, k])
+    assert few.among[:, k].sum(1).eq(3).all() and few.among[torch.arange(8), k, sent].all()
+    assert few.among[:, :k].all() and few.among[:, k + 1:].all()  # the probes not copied are not restricted
+    model.warmup = ImitateBestProbe(2, samples=2)
+    terms, _ = model.evaluate(again, labels, "imitate", draw)
+    full = model.policy.evaluate(rep, again.actions, again.points, chosen=few.requests).log_pi[:, k]
+    each = torch.stack([model.policy.evaluate(rep, again.actions, again.points, chosen=c.expand(8, 4, 4)).log_pi[:, k]
+                        for c in candidates], 1)  # every candidate's log pi at probe k, in the same state
+    restricted = full - each.masked_fill(~few.among[:, k], -torch.inf).logsumexp(1)
+    torch.testing.assert_close(terms["loss_imitation"], -restricted.mean())
     with pytest.raises(RuntimeError, match="model.sim no longer holds the rollout's episodes"):
         model.sim.reset(((labels + 1) % data.n_classes).numpy(), poses.numpy())
         warmup.targets(model, again, labels, draw)
@@ -471,6 +483,10 @@ def test_the_best_probe_warmup_teaches_the_candidate_the_heads_read_best_at_one_
         ImitateBestProbe(2, samples=0)
     with pytest.raises(ValueError, match="ImitateBestProbe compares the policy's candidates; GaussianPolicy"):
         make_model(data, warmup=ImitateBestProbe(2))
+    gaussian = make_model(data)
+    with pytest.raises(ValueError, match="`among` restricts a choice among candidates; a Gaussian has none"):
+        gaussian.policy.evaluate(rep, again.actions, again.points, among=few.among)
+    gaussian.sim.close()
     model.sim.close()
 
 

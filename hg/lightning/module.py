@@ -125,7 +125,8 @@ class HapticGlance(pl.LightningModule):
             imitation = self.warmup.targets(self, rollout, labels, seed) if self.warmup else Imitation(rollout.actions)
         if regime != "classify" and isinstance(self.policy, LearnedPolicy):
             evaluated = self.policy.evaluate(rep, rollout.actions, rollout.points,
-                                             chosen=None if imitation is None else imitation.requests)
+                                             chosen=None if imitation is None else imitation.requests,
+                                             among=None if imitation is None else imitation.among)
         if regime == "reinforce" and evaluated is not None:
             terms = self.loss(logits, labels, evaluated.log_pi, evaluated.baseline, float(self.policy.std_scale),
                               points=rollout.points)

@@ -45,10 +45,13 @@ class PolicyEval:
 @dataclass
 class Imitation:
     """What an imitating policy learns to ask for in the states of a rollout: `requests` (B, N, 4), at the `valid`
-    probes (B, N) bool (None: all; an exploring warm-up leaves out a request the policy may not make there)."""
+    probes (B, N) bool (None: all; an exploring warm-up leaves out a request the policy may not make there), each
+    chosen `among` the candidates (B, N, C) bool that are True (None: among all the policy may take; a teacher that
+    compared a few is copied among those few, so that its pick is not read as a verdict on the ones it never saw)."""
 
     requests: Tensor
     valid: Tensor | None = None
+    among: Tensor | None = None
 
 
 class Policy(nn.Module):
@@ -80,11 +83,13 @@ class LearnedPolicy(Policy):
         """The factor on the policy's spread (a std, or a choice's temperature) a schedule may shrink."""
         return self.location.std_scale
 
-    def evaluate(self, rep: Tensor, actions: Tensor, points: Tensor, chosen: Tensor | None = None) -> PolicyEval:
+    def evaluate(self, rep: Tensor, actions: Tensor, points: Tensor, chosen: Tensor | None = None,
+                 among: Tensor | None = None) -> PolicyEval:
         """log pi of the requests `actions` (B, N, 4) that produced `points` (B, N, 4), from the encoder's
         representation after each probe rep (B, N, D), in one pass (teacher forcing). `chosen` (B, N, 4): take log pi
         of these requests instead, in the states the sent ones led to (a teacher's would-be requests, which an
-        exploring warm-up did not always send)."""
+        exploring warm-up did not always send); `among` (B, N, C) bool: of the choice restricted to these candidates
+        (Imitation.among; a policy without candidates refuses it)."""
         raise NotImplementedError
 
     def imitation_loss(self, evaluated: PolicyEval, imitation: Imitation) -> Tensor:

@@ -73,9 +73,12 @@ class CandidateChoice(LearnedPolicy):
         state = self.location.state(obs.rep_sum, k, batch_size=len(obs.points), extra=extra)
         return self.location.sample(state, deterministic=deterministic, generator=generator, exclude=exclude)[0]
 
-    def evaluate(self, rep: Tensor, actions: Tensor, points: Tensor, chosen: Tensor | None = None) -> PolicyEval:
+    def evaluate(self, rep: Tensor, actions: Tensor, points: Tensor, chosen: Tensor | None = None,
+                 among: Tensor | None = None) -> PolicyEval:
         readings, probed = self.location.readings(actions, points, self.n_probes)
         states = self.location.states(self.policy_rep(rep), readings)
         exclude = F.pad(probed[:, :-1], (0, 0, 1, 0), value=False)  # state s_k excludes what probes 1..k probed
+        if among is not None:
+            exclude = exclude | ~among
         log_pi, mu, sigma = self.location.log_prob_and_moments(states, actions if chosen is None else chosen, exclude)
         return PolicyEval(log_pi, self.baseline(states.detach()), mu, sigma, stats=self.std_stats(sigma))

@@ -59,7 +59,10 @@ class GaussianPolicy(LearnedPolicy):
         offset = None if offsets is None else offsets[:, obs.k].to(state.device)
         return self.location.sample(state, deterministic=deterministic, generator=generator, offset=offset)[0]
 
-    def evaluate(self, rep: Tensor, actions: Tensor, points: Tensor, chosen: Tensor | None = None) -> PolicyEval:
+    def evaluate(self, rep: Tensor, actions: Tensor, points: Tensor, chosen: Tensor | None = None,
+                 among: Tensor | None = None) -> PolicyEval:
+        if among is not None:
+            raise ValueError("GaussianPolicy.evaluate: `among` restricts a choice among candidates; a Gaussian has none")
         states = self.location.states(self.policy_rep(rep), self.counts(*rep.shape[:2], rep.device))
         offsets = self.offsets(points)
         log_pi, mu, sigma = self.location.log_prob_and_moments(states, actions if chosen is None else chosen, offsets)

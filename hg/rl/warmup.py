@@ -141,7 +141,9 @@ class ImitateBestProbe(Warmup):
     @torch.no_grad()
     def targets(self, model: Model, rollout: Rollout, labels: Tensor, seed: int) -> Imitation:
         """The best of the sent request and the drawn candidates at probe k, by the heads' log p(true class) after
-        probes 1..k and it (a tie goes to the sent one); every other probe is left out. Row k of a branch of k + 1
+        probes 1..k and it (a tie goes to the sent one), to be copied among those compared (a choice over all the
+        candidates would learn only how likely each is to be drawn and win, and stay nearly even); every other probe
+        is left out. Row k of a branch of k + 1
         probes is what the full rollout's row k would be: every encoder and head reads probes 1..k + 1 only, and a
         head of whole episodes only where k + 1 = n_probes (HapticGlance.predict)."""
         policy, (batch, n_probes) = model.policy, rollout.actions.shape[:2]
@@ -171,7 +173,10 @@ class ImitateBestProbe(Warmup):
         wanted[:, k] = requests[torch.arange(batch, device=requests.device), read.squeeze(-1).argmax(1)]
         valid = torch.zeros(batch, n_probes, dtype=torch.bool, device=wanted.device)
         valid[:, k] = True
-        return Imitation(wanted, valid)
+        among = torch.ones(batch, n_probes, n_candidates, dtype=torch.bool, device=wanted.device)
+        among[:, k] = False
+        among[:, k].scatter_(1, drawn, True)
+        return Imitation(wanted, valid, among)
 
 
 def require_candidates(policy: Policy, who: str) -> None:
