@@ -62,7 +62,8 @@ class GaussianPolicy(LearnedPolicy):
     def evaluate(self, rep: Tensor, actions: Tensor, points: Tensor, chosen: Tensor | None = None,
                  among: Tensor | None = None) -> PolicyEval:
         if among is not None:
-            raise ValueError("GaussianPolicy.evaluate: `among` restricts a choice among candidates; a Gaussian has none")
+            raise ValueError("GaussianPolicy.evaluate: `among` restricts a choice among candidates; "
+                             "a Gaussian has none")
         states = self.location.states(self.policy_rep(rep), self.counts(*rep.shape[:2], rep.device))
         offsets = self.offsets(points)
         log_pi, mu, sigma = self.location.log_prob_and_moments(states, actions if chosen is None else chosen, offsets)
