@@ -476,8 +476,8 @@ def test_the_best_probe_warmup_teaches_the_candidate_the_heads_read_best_at_one_
                         for c in candidates], 1)  # every candidate's log pi at probe k, in the same state
     restricted = full - each.masked_fill(~few.among[:, k], -torch.inf).logsumexp(1)
     torch.testing.assert_close(terms["loss_imitation"], -restricted.mean())
+    model.sim.reset(((labels + 1) % data.n_classes).numpy(), poses.numpy())
     with pytest.raises(RuntimeError, match="model.sim no longer holds the rollout's episodes"):
-        model.sim.reset(((labels + 1) % data.n_classes).numpy(), poses.numpy())
         warmup.targets(model, again, labels, draw)
     with pytest.raises(ValueError, match="warmup.samples=0"):
         ImitateBestProbe(2, samples=0)

@@ -49,9 +49,14 @@ def rewards_of(logits: Tensor, labels: Tensor, reward: Reward, points: Tensor | 
         return torch.where(touched, (distance.min(-1).values / spread).clamp(max=1.0), 0.0)
     if reward != "log_gain":
         raise ValueError(f"reward={reward!r}: expected one of {REWARDS}")
-    n_probes = logits.shape[1]
-    log_p = logits.detach().log_softmax(-1).gather(-1, labels[:, None, None].expand(-1, n_probes, 1)).squeeze(-1)
+    log_p = log_p_true(logits.detach(), labels)
     return torch.diff(log_p, dim=1, prepend=torch.full_like(log_p[:, :1], -math.log(logits.shape[-1])))
+
+
+def log_p_true(logits: Tensor, labels: Tensor) -> Tensor:
+    """log p(true class) of logits (B, ..., C) for labels (B,): (B, ...), what a probe's reading is worth."""
+    index = labels.view(-1, *[1] * (logits.dim() - 1)).expand(*logits.shape[:-1], 1)
+    return logits.log_softmax(-1).gather(-1, index).squeeze(-1)
 
 
 @dataclass(frozen=True)

@@ -10,11 +10,12 @@ import torch
 from torch import Tensor
 
 from hg.policies import Detours, Imitation, Policy
+from hg.rl.loss import log_p_true
 from hg.rl.rollout import Rollout, probe_points
 from hg.sim import ProbeSimulator
 
 
-class Model(Protocol):
+class WarmupModel(Protocol):
     """What a warm-up's targets may read of the model (hg.lightning.HapticGlance): its policy, its simulator, still
     holding the rollout's episodes, and its heads' prediction after each probe."""
 
@@ -45,7 +46,7 @@ class Warmup:
         """What probes when the warm-up gives no requests."""
         return policy
 
-    def targets(self, model: Model, rollout: Rollout, labels: Tensor, seed: int) -> Imitation:
+    def targets(self, model: WarmupModel, rollout: Rollout, labels: Tensor, seed: int) -> Imitation:
         """What an imitating policy learns to ask for in the states of `rollout` (of the episodes `labels`, drawn with
         the batch's `seed`): by default the requests the warm-up sent."""
         return Imitation(rollout.actions)
@@ -108,7 +109,7 @@ class ExploreAroundPrior(FollowPrior):
         require_candidates(policy, "ExploreAroundPrior draws its detours among")
         return Detours(prior, policy.candidates, self.explore)
 
-    def targets(self, model: Model, rollout: Rollout, labels: Tensor, seed: int) -> Imitation:
+    def targets(self, model: WarmupModel, rollout: Rollout, labels: Tensor, seed: int) -> Imitation:
         policy = model.policy
         wanted = policy.prior.requests(rollout.points)
         # request k repeats an earlier one: the choice never probes a place twice, so it cannot be copied there
@@ -122,9 +123,10 @@ class ImitateBestProbe(Warmup):
     ask for whichever of `samples` candidates not yet probed, or the request it sent, the heads as they stand read
     best: log p(true class) after probes 1..k and that candidate. The targets are privileged (each candidate is
     probed on the training episode itself, pose and all); the choice learns from what it has read which candidate
-    that tends to be. Why: the class reward of one sampled probe per state is too noisy to move a choice anywhere
-    (docs/findings.md, sections 15-17); this compares probes in the same state, with the same heads, every step.
-    Without a prior scan: a learned policy that starts from no scan at all."""
+    tends to win. Why: a choice that learns by the class reward of the probes it sampled stayed on the scan it
+    started from (docs/findings.md, sections 15-17); this compares probes in the same state, with the same heads,
+    every step, and needs no scan to start from. After `steps` it hands over to the hybrid rule as any warm-up does
+    (configs/parts/best_probe.yaml sets them beyond the run: it never does)."""
 
     imitate = True
 
@@ -139,13 +141,13 @@ class ImitateBestProbe(Warmup):
         return policy
 
     @torch.no_grad()
-    def targets(self, model: Model, rollout: Rollout, labels: Tensor, seed: int) -> Imitation:
+    def targets(self, model: WarmupModel, rollout: Rollout, labels: Tensor, seed: int) -> Imitation:
         """The best of the sent request and the drawn candidates at probe k, by the heads' log p(true class) after
         probes 1..k and it (a tie goes to the sent one), to be copied among those compared (a choice over all the
         candidates would learn only how likely each is to be drawn and win, and stay nearly even); every other probe
-        is left out. Row k of a branch of k + 1
-        probes is what the full rollout's row k would be: every encoder and head reads probes 1..k + 1 only, and a
-        head of whole episodes only where k + 1 = n_probes (HapticGlance.predict)."""
+        is left out. Row k of a branch of k + 1 probes is what the full rollout's row k would be: every encoder and
+        head reads probes 1..k + 1 only, and a head of whole episodes only where k + 1 = n_probes
+        (HapticGlance.predict)."""
         policy, (batch, n_probes) = model.policy, rollout.actions.shape[:2]
         if not np.array_equal(model.sim.labels, labels.cpu().numpy()):
             raise RuntimeError("ImitateBestProbe.targets: model.sim no longer holds the rollout's episodes (probe the "
@@ -168,9 +170,9 @@ class ImitateBestProbe(Warmup):
                                        points=branches(rollout.points, points, k),
                                        reached=torch.ones(batch * drawn.shape[1], k + 1, dtype=torch.bool,
                                                           device=requests.device)))[0][:, k]
-        read = logits.view(*drawn.shape, -1).log_softmax(-1).gather(-1, labels[:, None, None].expand(*drawn.shape, 1))
+        read = log_p_true(logits.view(*drawn.shape, -1), labels)  # (B, S)
         wanted = rollout.actions.clone()
-        wanted[:, k] = requests[torch.arange(batch, device=requests.device), read.squeeze(-1).argmax(1)]
+        wanted[:, k] = requests[torch.arange(batch, device=requests.device), read.argmax(1)]
         valid = torch.zeros(batch, n_probes, dtype=torch.bool, device=wanted.device)
         valid[:, k] = True
         among = torch.ones(batch, n_probes, n_candidates, dtype=torch.bool, device=wanted.device)
