@@ -2,7 +2,8 @@
 
 Each run trains the composition with the override for --steps steps, validates once at the end on the validation
 split (never test), and writes its record (command, commit, host, validation accuracy after each probe, the mean
-over the last half of training of the diagnostics: touch rate, clamped share, gradient ratio...) atomically to
+over the last half of training of the diagnostics: touch rate, clamped share, gradient ratio..., and their rows,
+`train_curve`, as the run's diagnostics.csv held them) atomically to
 --out/<factor>_s<seed>.json; a finished record is reused. The last line printed is the summary table as JSON.
 
     .venv/bin/python scripts/ablate.py --base configs/pcrn_fc.yaml --steps 2000 --seeds 0 1 \\
@@ -57,7 +58,9 @@ def run(base: list[str], override: str, seed: int, steps: int, val_episodes: int
             "val_accuracy_mean_action": column("acc_mean_action"),
             "val_accuracy_prior": column("acc_prior"),  # the same heads behind the policy's prior scan
             "val_touch_rate": round(float(metrics["val/touch_rate"]), 4),
-            "train_late": {k: round(v, 4) for k, v in summary.items()}, "wall_s": round(time.time() - start, 1)}
+            "train_late": {k: round(v, 4) for k, v in summary.items()},
+            "train_curve": [{k: round(v, 4) for k, v in row.items()} for row in diagnostics.rows],  # every logged row
+            "wall_s": round(time.time() - start, 1)}
 
 
 def halfway(accuracy: list[float]) -> float:
