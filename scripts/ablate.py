@@ -2,9 +2,9 @@
 
 Each run trains the composition with the override for --steps steps, validates once at the end on the validation
 split (never test), and writes its record (command, commit, host, validation accuracy after each probe, the mean
-over the last half of training of the diagnostics: touch rate, clamped share, gradient ratio..., and their rows,
-`train_curve`, as the run's diagnostics.csv held them) atomically to
---out/<factor>_s<seed>.json; a finished record is reused. The last line printed is the summary table as JSON.
+over the last half of training of the diagnostics: touch rate, clamped share, gradient ratio..., and their rows as
+the run's diagnostics.csv held them, `train_curve`) atomically to --out/<factor>_s<seed>.json; a finished record is
+reused. The last line printed is the summary table as JSON.
 
     .venv/bin/python scripts/ablate.py --base configs/pcrn_fc.yaml --steps 2000 --seeds 0 1 \\
         --factor none= --factor clip="--trainer.gradient_clip_val 1.0" --out docs/results/study

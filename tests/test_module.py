@@ -419,10 +419,11 @@ def test_an_exploring_copy_probes_off_the_scan_and_copies_what_the_scan_would_as
 
 def test_the_best_probe_warmup_teaches_the_candidate_the_heads_read_best_at_one_probe(data):
     """ImitateBestProbe: at one probe k per step (any of them, by the seed) the target is, of the sent request and
-    the candidates not probed before, the one after which the heads read log p(true class) highest, read after the
-    rollout's probes 1..k as the whole rollout reads its row k; the choice's cross-entropy there is its imitation
-    term, which reaches the location network; and the rollout that follows is untouched by its probes."""
-    warmup = ImitateBestProbe(2, samples=100)  # more than the 28 candidates: every one is compared
+    the candidates the rollout did not probe up to row k + horizon - 1, the one after which the heads read log p(true
+    class) highest, on average over rows k..k + horizon - 1 (the rollout's own later probes), each row read as the
+    whole rollout reads it; the choice's cross-entropy there is its imitation term, which reaches the location
+    network; and the rollout that follows is untouched by its probes."""
+    warmup = ImitateBestProbe(2, samples=100)  # more than the candidates (20): every one is compared
     heads = [lambda dims: FCClassifier(dims, hidden=32),  # and one that reads whole episodes only
              lambda dims: TouchSetClassifier(dims, shared=(16, 32), hidden=32, last_only=True)]
     model = make_model(data, policy=lambda dims: CandidateChoice(dims, places=None, leans=(0.6, 1.0), hidden=32),
@@ -445,7 +446,7 @@ def test_the_best_probe_warmup_teaches_the_candidate_the_heads_read_best_at_one_
 
     seen = set()
     # horizon 3 of 4 probes: the rollout's next 2 probes read after the candidate, fewer near the end
-    for draw, horizon in [(draw, horizon) for draw in range(12) for horizon in (3, 1)]:  # the last: `warmup`'s
+    for draw, horizon in [(draw, horizon) for draw in range(12) for horizon in (3, 1)]:  # the last as `warmup`: `repeat`
         imitation = ImitateBestProbe(2, samples=100, horizon=horizon).targets(model, rollout, labels, draw)
         k = int(imitation.valid[0].nonzero())
         end = min(k + horizon, 4)
@@ -459,6 +460,8 @@ def test_the_best_probe_warmup_teaches_the_candidate_the_heads_read_best_at_one_
         readings = torch.stack([read_after(k, candidate.expand(8, 4), end) for candidate in candidates], 1)
         readings[torch.arange(8)[:, None], others] = -float("inf")
         torch.testing.assert_close(read_after(k, imitation.requests[:, k], end), readings.max(1).values)
+        assert imitation.among[:, k].sum(1).eq(len(candidates) - end + 1).all()  # all the branches do not probe
+        assert not imitation.among[torch.arange(8)[:, None], k, others].any()
     assert seen == {(k, h) for k in range(4) for h in (1, 3)}  # the last probe too, where whole-episode heads read
     repeat = warmup.targets(model, rollout, labels, draw)  # the same seed, the same draws
     assert torch.equal(repeat.requests, imitation.requests) and torch.equal(repeat.valid, imitation.valid)

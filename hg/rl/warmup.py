@@ -120,21 +120,19 @@ class ExploreAroundPrior(FollowPrior):
 
 class ImitateBestProbe(Warmup):
     """The choice probes with its own draws and learns, at one probe k of each training step (drawn at random), to
-    ask for whichever of `samples` candidates not yet probed, or the request it sent, the heads as they stand read
-    best: log p(true class) after probes 1..k and that candidate, averaged over `horizon` readings (the rollout's
-    next horizon - 1 probes following it, as the reward pays every probe). The targets are privileged (each candidate
-    is probed on the training episode itself, pose and all); the choice learns from what it has read which candidate
-    tends to win. Why: a choice that learns by the class reward of the probes it sampled stayed on the scan it
-    started from (docs/findings.md, sections 15-17); this compares probes in the same state, with the same heads,
-    every step, and needs no scan to start from. Probes are independent ray casts, so a later reading needs no new
-    probe: the rollout's own are read again after the candidate. After `steps` it hands over to the hybrid rule as
-    any warm-up does (configs/parts/best_probe.yaml sets them beyond the run: it never does)."""
+    ask for whichever of the request it sent and `samples` candidates the heads as they stand read best: log p(true
+    class) after probes 1..k and that candidate, averaged over up to `horizon` readings (after it and the rollout's
+    next probes, reused: probes are independent ray casts), as the reward pays every probe. Each candidate is probed
+    on the training episode itself (privileged); the choice learns from what it has read which tends to win. Why: a
+    choice that learns by the class reward of the probes it sampled stayed on the scan it started from
+    (docs/findings.md, sections 15-17); this compares probes in the same state, with the same heads, every step, and
+    needs no scan. After `steps` it hands over to the hybrid rule (configs/parts/best_probe.yaml: it never does)."""
 
     imitate = True
 
     def __init__(self, steps: int, samples: int = 8, horizon: int = 1) -> None:
         super().__init__(steps)
-        if samples < 1:  # fewer are compared where fewer are left (none at the last probe of n_probes candidates)
+        if samples < 1:  # fewer are compared where fewer are left (none where the branches read every candidate)
             raise ValueError(f"warmup.samples={samples}: compare the sent request with at least 1 other candidate")
         if horizon < 1:
             raise ValueError(f"warmup.horizon={horizon}: read at least the probe compared (1)")
@@ -162,7 +160,7 @@ class ImitateBestProbe(Warmup):
         end = min(k + self.horizon, n_probes)  # the branches read probes 1..end
         taken = policy.location.index_of(rollout.actions[:, :end])  # (B, end): probes 1..end as the rollout sent them
         n_candidates = len(policy.candidates)
-        samples = min(self.samples, n_candidates - end)
+        samples = max(0, min(self.samples, n_candidates - end))
         # candidates the branches do not probe already, drawn without replacement: the lowest of random keys
         keys = torch.from_numpy(rng.random((batch, n_candidates))).to(taken.device)
         keys = keys.scatter(1, taken, 2.0)  # taken: never drawn
