@@ -419,10 +419,9 @@ def test_an_exploring_copy_probes_off_the_scan_and_copies_what_the_scan_would_as
 
 def test_the_best_probe_warmup_teaches_the_candidate_the_heads_read_best_at_one_probe(data):
     """ImitateBestProbe: at one probe k per step (any of them, by the seed) the target is, of the sent request and
-    the candidates the rollout did not probe up to row k + horizon - 1, the one after which the heads read log p(true
-    class) highest, on average over rows k..k + horizon - 1 (the rollout's own later probes), each row read as the
-    whole rollout reads it; the choice's cross-entropy there is its imitation term, which reaches the location
-    network; and the rollout that follows is untouched by its probes."""
+    the candidates not probed before, the one after which the heads read log p(true class) highest, read after the
+    rollout's probes 1..k as the whole rollout reads its row k; the choice's cross-entropy there is its imitation
+    term, which reaches the location network; and the rollout that follows is untouched by its probes."""
     warmup = ImitateBestProbe(2, samples=100)  # more than the candidates (20): every one is compared
     heads = [lambda dims: FCClassifier(dims, hidden=32),  # and one that reads whole episodes only
              lambda dims: TouchSetClassifier(dims, shared=(16, 32), hidden=32, last_only=True)]
@@ -435,34 +434,29 @@ def test_the_best_probe_warmup_teaches_the_candidate_the_heads_read_best_at_one_
     with torch.no_grad():
         whole = model.predict(rollout)[0].log_softmax(-1).gather(-1, labels[:, None, None].expand(-1, 4, 1))[..., 0]
 
-    def read_after(k, requests, end):  # mean log p(true class) after rows k..end - 1, these requests (B, 4) at k
-        actions = rollout.actions[:, :end].clone()
-        actions[:, k] = requests
+    def read_after(k, requests):  # log p(true class) after probes 1..k and these requests (B, 4)
+        actions = torch.cat([rollout.actions[:, :k], requests[:, None]], 1)
         points = torch.stack([probe_points(model.sim, actions[:, j], model.hparams.point_scale)[0]
-                              for j in range(end)], 1)
+                              for j in range(k + 1)], 1)
         with torch.no_grad():
-            logits = model.predict(Rollout(actions, actions, points, torch.ones(8, end, dtype=torch.bool)))[0]
-        return logits[:, k:end].log_softmax(-1).gather(2, labels[:, None, None].expand(-1, end - k, 1)).mean((1, 2))
+            logits = model.predict(Rollout(actions, actions, points, torch.ones(8, k + 1, dtype=torch.bool)))[0]
+        return logits[:, k].log_softmax(-1).gather(1, labels[:, None]).squeeze(1)
 
     seen = set()
-    # horizon 3 of 4 probes: the rollout's next 2 probes read after the candidate, fewer near the end
-    for draw, horizon in [(draw, horizon) for draw in range(12) for horizon in (3, 1)]:  # the last as `warmup`: `repeat`
-        imitation = ImitateBestProbe(2, samples=100, horizon=horizon).targets(model, rollout, labels, draw)
+    for draw in range(12):
+        imitation = warmup.targets(model, rollout, labels, draw)
         k = int(imitation.valid[0].nonzero())
-        end = min(k + horizon, 4)
-        seen.add((k, horizon))
+        seen.add(k)
         assert imitation.valid.sum(1).eq(1).all() and imitation.valid[:, k].all()
-        index, taken = location.index_of(imitation.requests[:, k]), location.index_of(rollout.actions[:, :end])
-        others = torch.cat([taken[:, :k], taken[:, k + 1:]], 1)  # the sent one may be asked for; these may not
-        assert not (others == index[:, None]).any()
-        torch.testing.assert_close(read_after(k, rollout.actions[:, k], end),  # a branch reads as the whole
-                                   whole[:, k:end].mean(1))
-        readings = torch.stack([read_after(k, candidate.expand(8, 4), end) for candidate in candidates], 1)
-        readings[torch.arange(8)[:, None], others] = -float("inf")
-        torch.testing.assert_close(read_after(k, imitation.requests[:, k], end), readings.max(1).values)
-        assert imitation.among[:, k].sum(1).eq(len(candidates) - end + 1).all()  # all the branches do not probe
-        assert not imitation.among[torch.arange(8)[:, None], k, others].any()
-    assert seen == {(k, h) for k in range(4) for h in (1, 3)}  # the last probe too, where whole-episode heads read
+        index, probed = location.index_of(imitation.requests[:, k]), location.index_of(rollout.actions[:, :k])
+        assert not (probed == index[:, None]).any()  # never a candidate probed before
+        torch.testing.assert_close(read_after(k, rollout.actions[:, k]), whole[:, k])  # a branch reads as the whole
+        readings = torch.stack([read_after(k, candidate.expand(8, 4)) for candidate in candidates], 1)
+        readings[torch.arange(8)[:, None], probed] = -float("inf")  # the ones it may not ask for
+        torch.testing.assert_close(read_after(k, imitation.requests[:, k]), readings.max(1).values)
+        assert imitation.among[:, k].sum(1).eq(len(candidates) - k).all()  # the sent one and all not probed before
+        assert not imitation.among[torch.arange(8)[:, None], k, probed].any()
+    assert seen == {0, 1, 2, 3}  # the last probe too, where the head of whole episodes reads
     repeat = warmup.targets(model, rollout, labels, draw)  # the same seed, the same draws
     assert torch.equal(repeat.requests, imitation.requests) and torch.equal(repeat.valid, imitation.valid)
     again = model.roll(labels, poses, seed, policy=warmup.prober(model.policy))
@@ -489,8 +483,6 @@ def test_the_best_probe_warmup_teaches_the_candidate_the_heads_read_best_at_one_
         warmup.targets(model, again, labels, draw)
     with pytest.raises(ValueError, match="warmup.samples=0"):
         ImitateBestProbe(2, samples=0)
-    with pytest.raises(ValueError, match="warmup.horizon=0"):
-        ImitateBestProbe(2, horizon=0)
     with pytest.raises(ValueError, match="ImitateBestProbe compares the policy's candidates; GaussianPolicy"):
         make_model(data, warmup=ImitateBestProbe(2))
     gaussian = make_model(data)

@@ -120,23 +120,21 @@ class ExploreAroundPrior(FollowPrior):
 
 class ImitateBestProbe(Warmup):
     """The choice probes with its own draws and learns, at one probe k of each training step (drawn at random), to
-    ask for whichever of the request it sent and `samples` candidates the heads as they stand read best: log p(true
-    class) after probes 1..k and that candidate, averaged over up to `horizon` readings (after it and the rollout's
-    next probes, reused: probes are independent ray casts), as the reward pays every probe. Each candidate is probed
-    on the training episode itself (privileged); the choice learns from what it has read which tends to win. Why: a
-    choice that learns by the class reward of the probes it sampled stayed on the scan it started from
-    (docs/findings.md, sections 15-17); this compares probes in the same state, with the same heads, every step, and
-    needs no scan. After `steps` it hands over to the hybrid rule (configs/parts/best_probe.yaml: it never does)."""
+    ask for whichever of `samples` candidates not yet probed, or the request it sent, the heads as they stand read
+    best: log p(true class) after probes 1..k and that candidate. The targets are privileged (each candidate is
+    probed on the training episode itself, pose and all); the choice learns from what it has read which candidate
+    tends to win. Why: a choice that learns by the class reward of the probes it sampled stayed on the scan it
+    started from (docs/findings.md, sections 15-17); this compares probes in the same state, with the same heads,
+    every step, and needs no scan to start from. After `steps` it hands over to the hybrid rule as any warm-up does
+    (configs/parts/best_probe.yaml sets them beyond the run: it never does)."""
 
     imitate = True
 
-    def __init__(self, steps: int, samples: int = 8, horizon: int = 1) -> None:
+    def __init__(self, steps: int, samples: int = 8) -> None:
         super().__init__(steps)
-        if samples < 1:  # fewer are compared where fewer are left (none where the branches read every candidate)
+        if samples < 1:  # fewer are compared where fewer are left (none at the last probe of n_probes candidates)
             raise ValueError(f"warmup.samples={samples}: compare the sent request with at least 1 other candidate")
-        if horizon < 1:
-            raise ValueError(f"warmup.horizon={horizon}: read at least the probe compared (1)")
-        self.samples, self.horizon = samples, horizon
+        self.samples = samples
 
     def prober(self, policy: Policy) -> Policy:
         require_candidates(policy, "ImitateBestProbe compares")
@@ -144,37 +142,36 @@ class ImitateBestProbe(Warmup):
 
     @torch.no_grad()
     def targets(self, model: WarmupModel, rollout: Rollout, labels: Tensor, seed: int) -> Imitation:
-        """The best of the sent request and the drawn candidates at probe k, by the heads' mean log p(true class)
-        after probes 1..k and it, and after each of the rollout's next horizon - 1 probes (a tie goes to the sent
-        one), to be copied among those compared (a choice over all the candidates would learn only how likely each is
-        to be drawn and win, and stay nearly even); every other probe is left out. A candidate is drawn only if the
-        rollout probed it neither before nor among the probes read after it. Row j of a branch is what the full
-        rollout's row j would be: every encoder and head reads probes 1..j + 1 only, and a head of whole episodes only
-        where j + 1 = n_probes (HapticGlance.predict)."""
+        """The best of the sent request and the drawn candidates at probe k, by the heads' log p(true class) after
+        probes 1..k and it (a tie goes to the sent one), to be copied among those compared (a choice over all the
+        candidates would learn only how likely each is to be drawn and win, and stay nearly even); every other probe
+        is left out (reading on to the episode's end, with the rollout's own later probes, did no better:
+        docs/findings.md, section 19). Row k of a branch of k + 1 probes is what the full rollout's row k would be:
+        every encoder and head reads probes 1..k + 1 only, and a head of whole episodes only where k + 1 = n_probes
+        (HapticGlance.predict)."""
         policy, (batch, n_probes) = model.policy, rollout.actions.shape[:2]
         if not np.array_equal(model.sim.labels, labels.cpu().numpy()):
             raise RuntimeError("ImitateBestProbe.targets: model.sim no longer holds the rollout's episodes (probe the "
                                "candidates right after the rollout, before the simulator is reset)")
         rng = np.random.default_rng((seed, 1))  # not the rollout's stream (seed alone), nor the data's
         k = int(rng.integers(n_probes))
-        end = min(k + self.horizon, n_probes)  # the branches read probes 1..end
-        taken = policy.location.index_of(rollout.actions[:, :end])  # (B, end): probes 1..end as the rollout sent them
+        sent = policy.location.index_of(rollout.actions[:, :k + 1])  # (B, k + 1): probes 1..k and the one sent
         n_candidates = len(policy.candidates)
-        samples = max(0, min(self.samples, n_candidates - end))
-        # candidates the branches do not probe already, drawn without replacement: the lowest of random keys
-        keys = torch.from_numpy(rng.random((batch, n_candidates))).to(taken.device)
-        keys = keys.scatter(1, taken, 2.0)  # taken: never drawn
-        drawn = torch.cat([taken[:, k:k + 1], keys.argsort(1)[:, :samples]], 1)  # (B, 1 + samples), the sent one first
+        samples = max(0, min(self.samples, n_candidates - k - 1))
+        # candidates not probed before and not sent, drawn without replacement: the lowest of random keys
+        keys = torch.from_numpy(rng.random((batch, n_candidates))).to(sent.device)
+        keys = keys.scatter(1, sent, 2.0)  # taken: never drawn
+        drawn = torch.cat([sent[:, k:], keys.argsort(1)[:, :samples]], 1)  # (B, 1 + samples), the sent one first
         requests = policy.candidates[drawn]  # (B, S, 4)
         others = [probe_points(model.sim, requests[:, s], model.hparams.point_scale)[0].to(requests.device)
                   for s in range(1, drawn.shape[1])]
         points = torch.stack([rollout.points[:, k], *others], 1)  # the sent one's: what the rollout read
-        logits = model.predict(Rollout(actions=branches(rollout.actions[:, :end], requests, k),
-                                       requests=branches(rollout.requests[:, :end], requests, k),
-                                       points=branches(rollout.points[:, :end], points, k),
-                                       reached=torch.ones(batch * drawn.shape[1], end, dtype=torch.bool,
-                                                          device=requests.device)))[0][:, k:]
-        read = log_p_true(logits.reshape(*drawn.shape, end - k, -1), labels).mean(-1)  # (B, S)
+        logits = model.predict(Rollout(actions=branches(rollout.actions, requests, k),
+                                       requests=branches(rollout.requests, requests, k),
+                                       points=branches(rollout.points, points, k),
+                                       reached=torch.ones(batch * drawn.shape[1], k + 1, dtype=torch.bool,
+                                                          device=requests.device)))[0][:, k]
+        read = log_p_true(logits.view(*drawn.shape, -1), labels)  # (B, S)
         wanted = rollout.actions.clone()
         wanted[:, k] = requests[torch.arange(batch, device=requests.device), read.argmax(1)]
         valid = torch.zeros(batch, n_probes, dtype=torch.bool, device=wanted.device)
@@ -192,8 +189,7 @@ def require_candidates(policy: Policy, who: str) -> None:
                          "(hg.policies.CandidateChoice has)")
 
 
-def branches(episodes: Tensor, rows: Tensor, k: int) -> Tensor:
-    """episodes (B, M, F) and rows (B, S, F) -> (B x S, M, F): each episode with its row k replaced by each of the S."""
-    out = episodes[:, None].repeat(1, rows.shape[1], 1, 1)
-    out[:, :, k] = rows
-    return out.flatten(0, 1)
+def branches(prefix: Tensor, last: Tensor, k: int) -> Tensor:
+    """prefix (B, N, F) and last (B, S, F) -> (B x S, k + 1, F): rows 1..k of prefix followed by each of the S."""
+    head = prefix[:, None, :k].expand(-1, last.shape[1], -1, -1)
+    return torch.cat([head, last[:, :, None]], 2).flatten(0, 1)
