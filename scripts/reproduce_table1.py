@@ -130,6 +130,11 @@ ROWS = {
         "rule + mirrored touch sets", "learned", "learned",
         ("configs/side_scan.yaml", "configs/parts/choice_on_scan.yaml", STABLE_RL, TOUCH_SETS, LONG),
         overrides=("--model.warmup.init_args.steps", "8000")),
+    "best_probe_choice": Row(
+        "a choice among candidates from no scan that learns to ask for whichever of 9 probed candidates its heads read "
+        "best (privileged targets from the simulator, no REINFORCE) + mirrored touch sets", "learned", "learned",
+        ("configs/side_scan.yaml", "configs/parts/choice_on_scan.yaml", "configs/parts/best_probe.yaml", STABLE_RL,
+         TOUCH_SETS, LONG)),
     "planner_copy": Row("a choice among the greedy planner's candidates, copying it, then the hybrid rule: its learned "
                         "heads", "learned", "learned", PLANNER_COPY, was=COPY_65K),
     "planner_copy_library": Row("planner_copy's probes, named by the library classifier alone", "library", "learned",
