@@ -19,7 +19,6 @@ from hg.nets import (
     PointNet,
     TouchSetClassifier,
 )
-from hg.nets.location import fit_loss
 
 B, N, K = 3, 6, 2  # batch, probes, the probe after which we perturb
 DIMS = Dims(rep=8, n_probes=N, n_classes=4)
@@ -174,13 +173,13 @@ def test_candidate_location_chooses_among_its_candidates() -> None:
     some[0] = True  # the mean action in these rows only; the others draw what they drew without it
     mixed = net.sample(state, deterministic=some, generator=torch.Generator().manual_seed(7))[0]
     assert torch.equal(mixed[0], best[0]) and torch.equal(mixed[1:], draws[0][1:])
-    log_pi = net.log_prob_of(net.log_probs(state), draws[0])
+    log_pi, mu2, _ = net.log_prob_and_moments(state, draws[0])
     torch.testing.assert_close(log_pi, log_probs.gather(-1, net.index_of(draws[0])[..., None])[..., 0])
-    torch.testing.assert_close(net.moments(log_probs)[0], mu)
+    torch.testing.assert_close(mu2, mu)
     log_pi.sum().backward()
     assert net.net[0].weight.grad.abs().sum() > 0
     with pytest.raises(ValueError, match=r"request \[0.1, 0.0, 0.0, 1.0\] is not one of the 9 candidates"):
-        net.log_prob_of(log_probs[:, 0], torch.tensor([0.1, 0.0, 0.0, 1.0]).expand(B, 4))
+        net.log_prob_and_moments(state[:, 0], torch.tensor([0.1, 0.0, 0.0, 1.0]).expand(B, 4))
     net.std_scale.fill_(1e-5)  # a cold choice: its draws are its most likely candidate
     assert torch.equal(net.sample(state, generator=torch.Generator().manual_seed(3))[0],
                        net.sample(state, deterministic=True)[0])
@@ -198,16 +197,15 @@ def test_candidate_location_never_chooses_an_excluded_candidate() -> None:
         assert not exclude.gather(1, net.index_of(action)[:, None]).any()
     best = net.sample(state, deterministic=True, exclude=exclude)[0]
     assert not exclude.gather(1, net.index_of(best)[:, None]).any()
-    torch.testing.assert_close(net.log_prob_of(net.log_probs(state, exclude), best),
-                               net.log_probs(state, exclude).max(-1).values)
+    log_pi, _, _ = net.log_prob_and_moments(state, best, exclude)
+    torch.testing.assert_close(log_pi, net.log_probs(state, exclude).max(-1).values)
     assert (net.log_probs(state, exclude)[exclude] == -torch.inf).all()
 
 
-def test_a_choice_fitted_to_readings_asks_in_proportion_to_their_expected_exp_over_the_temperature() -> None:
-    """fit_loss: zero where temperature x log pi equals the readings up to a constant per state, blind to the
-    candidates not compared and to the probes not valid; and fitted by gradient descent to noisy readings of a few
-    candidates drawn at random each step, as ImitateBestProbe compares them, it leaves pi proportional to
-    exp(expected reading / temperature)."""
+def test_a_choice_fitted_to_readings_asks_in_proportion_to_their_exp_over_the_temperature() -> None:
+    """CandidateLocationNetwork.fit_loss: zero where temperature x log pi equals the readings up to a constant per
+    state, blind to the candidates not compared and to the probes not valid, and minimised by gradient descent it
+    leaves pi proportional to exp(reading / temperature) among those compared."""
     generator = torch.Generator().manual_seed(0)
     readings = torch.randn(3, 2, 6, generator=generator)
     among = torch.rand(3, 2, 6, generator=generator) < 0.6
@@ -216,23 +214,24 @@ def test_a_choice_fitted_to_readings_asks_in_proportion_to_their_expected_exp_ov
     exclude = torch.zeros(3, 2, 6, dtype=torch.bool)
     exclude[:, :, 5] = ~among[:, :, 5]  # a candidate the choice may not take (-inf) outside those compared
     exact = (readings / 0.5 + 3.0).masked_fill(exclude, -torch.inf).log_softmax(-1)
-    assert fit_loss(exact, readings, among, 0.5, valid) == pytest.approx(0.0, abs=1e-10)
+    fit = CandidateLocationNetwork.fit_loss
+    assert fit(exact, readings, among, 0.5, valid) == pytest.approx(0.0, abs=1e-10)
     noise = torch.randn(3, 2, 6, generator=generator)
-    assert fit_loss(exact + noise * ~among, readings, among, 0.5, valid) == pytest.approx(0.0, abs=1e-10)
-    assert fit_loss(exact + noise * ~valid[..., None], readings, among, 0.5, valid) == pytest.approx(0.0, abs=1e-10)
-    assert fit_loss(exact + noise, readings, among, 0.5, valid) > 0.01
-    expected = torch.linspace(-1.0, 0.0, 8)  # one state, 8 candidates
-    logits = torch.zeros(8, requires_grad=True)
-    optimizer = torch.optim.Adam([logits], lr=0.01)
-    for _ in range(3000):
-        compared = torch.rand(64, 8, generator=generator).argsort(-1)[:, :3]  # 3 of the 8 in each of 64 episodes
-        among = torch.zeros(64, 8, dtype=torch.bool).scatter(1, compared, True)
-        noisy = expected + 0.3 * torch.randn(64, 8, generator=generator)
-        loss = fit_loss(logits.log_softmax(-1).expand(64, -1), noisy, among, 0.2)
+    assert fit(exact + noise * ~among, readings, among, 0.5, valid) == pytest.approx(0.0, abs=1e-10)
+    assert fit(exact + noise * ~valid[..., None], readings, among, 0.5, valid) == pytest.approx(0.0, abs=1e-10)
+    assert fit(exact + noise, readings, among, 0.5, valid) > 0.01
+    logits = torch.zeros(3, 2, 6, requires_grad=True)
+    optimizer = torch.optim.Adam([logits], lr=0.05)
+    for _ in range(800):
+        loss = fit(logits.masked_fill(exclude, -torch.inf).log_softmax(-1), readings, among, 0.5, valid)
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
-    torch.testing.assert_close(logits.detach().softmax(-1), (expected / 0.2).softmax(-1), atol=0.02, rtol=0)
+    assert loss.item() < 1e-6
+    for b in range(3):
+        picked = among[b, 0]
+        want = (readings[b, 0, picked] / 0.5).softmax(-1)
+        torch.testing.assert_close(logits[b, 0, picked].detach().softmax(-1), want, atol=1e-3, rtol=0)
 
 
 def test_choice_reading_from_a_feature_on_ignores_those_before_it() -> None:

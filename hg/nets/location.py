@@ -174,23 +174,6 @@ def valid_mean(values: Tensor, valid: Tensor | None) -> Tensor:
     return values.mean() if valid is None else values[valid].mean()
 
 
-def fit_loss(log_probs: Tensor, readings: Tensor, among: Tensor | None, temperature: float,
-             valid: Tensor | None = None) -> Tensor:
-    """Beyond the paper: the mean squared gap between temperature x log pi (..., C) and a teacher's readings of the
-    candidates it compared (`among`, None: all the choice may take; at the `valid` probes), both centred over those,
-    since a log-softmax and a reading are each known up to a constant per state. Its fixed point asks for each
-    candidate in proportion to exp(its expected reading / temperature); in squared readings, it is small beside the
-    cross-entropy at a small temperature, so the clipped gradient stays mostly the heads' (Adam's step is scale-free)."""
-    mask = log_probs.isfinite() if among is None else among & log_probs.isfinite()
-    mask = mask if valid is None else mask & valid[..., None]
-    count = mask.sum(-1, keepdim=True).clamp(min=1)
-
-    def centred(values: Tensor) -> Tensor:
-        return torch.where(mask, values - torch.where(mask, values, 0.0).sum(-1, keepdim=True) / count, 0.0)
-
-    return (temperature * centred(log_probs) - centred(readings)).pow(2).sum() / mask.sum().clamp(min=1)
-
-
 def candidate_index(action: Tensor, candidates: Tensor) -> Tensor:
     """(..., 4) requests -> (...,) the index of each among the candidates (C, 4); refuses one that is none of them."""
     distance = (action.detach()[..., None, :] - candidates).abs().amax(-1)
@@ -263,6 +246,13 @@ class CandidateLocationNetwork(PolicyState):
             index = drawn if not isinstance(deterministic, Tensor) else torch.where(deterministic, index, drawn)
         return (self.candidates[index], *self.moments(log_probs))
 
+    def log_prob_and_moments(self, state: Tensor, action: Tensor, exclude: Tensor | None = None
+                             ) -> tuple[Tensor, Tensor, Tensor]:
+        """log pi(a_k | s_k) of candidate requests, (..., D), (..., 4) -> (...), with the moments of the choice it
+        was taken under."""
+        log_probs = self.log_probs(state, exclude)
+        return (self.log_prob_of(log_probs, action), *self.moments(log_probs))
+
     def log_prob_of(self, log_probs: Tensor, action: Tensor) -> Tensor:
         """(..., C) log-probabilities of the candidates, (..., 4) candidate requests -> (...) log pi of these."""
         return log_probs.gather(-1, self.index_of(action)[..., None])[..., 0]
@@ -270,3 +260,21 @@ class CandidateLocationNetwork(PolicyState):
     def imitation_loss(self, log_pi: Tensor, mu: Tensor, action: Tensor, valid: Tensor | None = None) -> Tensor:
         """How far the policy is from a teacher's choices: their cross-entropy."""
         return -valid_mean(log_pi, valid)
+
+    @staticmethod
+    def fit_loss(log_probs: Tensor, readings: Tensor, among: Tensor | None, temperature: float,
+                 valid: Tensor | None = None) -> Tensor:
+        """Beyond the paper: how far temperature x log pi (..., C) is from a teacher's readings (..., C) of the
+        candidates it compared (`among`, None: all the choice may take; at the `valid` probes), each centred on its mean over those (a log-softmax
+        and a reading are both known up to a constant per state): a squared distance in the readings' units, so that
+        its gradient stays on the cross-entropy's scale. The least-squares choice asks for each candidate in
+        proportion to exp(its expected reading / temperature), where a copy of the best asks for each as often as
+        it wins."""
+        mask = log_probs.isfinite() if among is None else among & log_probs.isfinite()
+        mask = mask if valid is None else mask & valid[..., None]
+        count = mask.sum(-1, keepdim=True).clamp(min=1)
+
+        def centred(values: Tensor) -> Tensor:
+            return torch.where(mask, values - torch.where(mask, values, 0.0).sum(-1, keepdim=True) / count, 0.0)
+
+        return (temperature * centred(log_probs) - centred(readings)).pow(2).sum() / mask.sum().clamp(min=1)

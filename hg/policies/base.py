@@ -56,7 +56,7 @@ class Imitation:
     valid: Tensor | None = None
     among: Tensor | None = None
     readings: Tensor | None = None
-    temperature: float | None = None  # of the readings (hg.rl.ImitateBestProbe), not the choice's own (std_scale)
+    temperature: float = 1.0
 
 
 class Policy(nn.Module):

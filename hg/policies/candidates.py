@@ -11,7 +11,6 @@ from torch import Tensor
 
 from hg.nets import CandidateLocationNetwork
 from hg.nets.dims import Dims
-from hg.nets.location import fit_loss
 from hg.policies.base import Imitation, LearnedPolicy, Observation, PolicyEval
 from hg.policies.scans import Scan
 from hg.sim import candidate_requests
@@ -88,8 +87,9 @@ class CandidateChoice(LearnedPolicy):
                           log_probs=log_probs)
 
     def imitation_loss(self, evaluated: PolicyEval, imitation: Imitation) -> Tensor:
-        """A teacher's readings of the candidates it compared are fitted (hg.nets.location.fit_loss), its
+        """A teacher's readings of the candidates it compared are fitted (CandidateLocationNetwork.fit_loss), its
         requests copied otherwise."""
         if imitation.readings is None:
             return super().imitation_loss(evaluated, imitation)
-        return fit_loss(evaluated.log_probs, imitation.readings, imitation.among, imitation.temperature, imitation.valid)
+        return self.location.fit_loss(evaluated.log_probs, imitation.readings, imitation.among, imitation.temperature,
+                                      imitation.valid)

@@ -128,7 +128,7 @@ class ImitateBestProbe(Warmup):
     every step, and needs no scan to start from. After `steps` it hands over to the hybrid rule as any warm-up does
     (configs/parts/best_probe.yaml sets them beyond the run: it never does). `temperature`: instead of copying the
     best, the choice fits its log-probabilities among those compared to their readings / temperature
-    (hg.nets.location.fit_loss): which of them wins on one episode depends on its pose, which the choice
+    (CandidateLocationNetwork.fit_loss): which of them wins on one episode depends on its pose, which the choice
     cannot see, so a copy of the winner learns little per step and stays broad (docs/findings.md, section 19)."""
 
     imitate = True
@@ -148,8 +148,7 @@ class ImitateBestProbe(Warmup):
     @torch.no_grad()
     def targets(self, model: WarmupModel, rollout: Rollout, labels: Tensor, seed: int) -> Imitation:
         """The best of the sent request and the drawn candidates at probe k, by the heads' log p(true class) after
-        probes 1..k and it (a tie goes to the sent one), to be copied among those compared (with a temperature, all their
-        readings, to be fitted) (a choice over all the
+        probes 1..k and it (a tie goes to the sent one), to be copied among those compared (a choice over all the
         candidates would learn only how likely each is to be drawn and win, and stay nearly even); every other probe
         is left out (reading on to the episode's end, with the rollout's own later probes, did no better:
         docs/findings.md, section 19). Row k of a branch of k + 1 probes is what the full rollout's row k would be:
