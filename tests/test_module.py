@@ -478,29 +478,11 @@ def test_the_best_probe_warmup_teaches_the_candidate_the_heads_read_best_at_one_
                         for c in candidates], 1)  # every candidate's log pi at probe k, in the same state
     restricted = full - each.masked_fill(~few.among[:, k], -torch.inf).logsumexp(1)
     torch.testing.assert_close(terms["loss_imitation"], -restricted.mean())
-    # with a temperature the choice fits its log-probabilities among those 3 to their readings / temperature
-    fitted = ImitateBestProbe(2, samples=2, temperature=0.1).targets(model, again, labels, draw)
-    assert torch.equal(fitted.among, few.among) and torch.equal(fitted.requests, few.requests)
-    compared = few.among[:, k].nonzero()[:, 1].view(8, 3)
-    readings = fitted.readings[torch.arange(8)[:, None], k, compared]
-    for s in range(3):
-        torch.testing.assert_close(readings[:, s], read_after(k, candidates[compared[:, s]]))
-    assert fitted.readings.count_nonzero() == readings.count_nonzero()  # nothing read outside them
-    model.warmup = ImitateBestProbe(2, samples=2, temperature=0.1)
-    terms, _ = model.evaluate(again, labels, "imitate", draw)
-    log_pi = torch.stack([model.policy.evaluate(rep, again.actions, again.points, chosen=candidates[c][:, None].expand(8, 4, 4),
-                                                among=few.among).log_pi[torch.arange(8), k]
-                          for c in compared.T], 1)  # (8, 3) the choice among the 3, in the same state
-    gap = 0.1 * (log_pi - log_pi.mean(1, keepdim=True)) - (readings - readings.mean(1, keepdim=True))
-    torch.testing.assert_close(terms["loss_imitation"], gap.pow(2).mean())
-    assert reaches(model, terms["loss_imitation"])["location"]
     model.sim.reset(((labels + 1) % data.n_classes).numpy(), poses.numpy())
     with pytest.raises(RuntimeError, match="model.sim no longer holds the rollout's episodes"):
         warmup.targets(model, again, labels, draw)
     with pytest.raises(ValueError, match="warmup.samples=0"):
         ImitateBestProbe(2, samples=0)
-    with pytest.raises(ValueError, match="warmup.temperature=0"):
-        ImitateBestProbe(2, temperature=0)
     with pytest.raises(ValueError, match="ImitateBestProbe compares the policy's candidates; GaussianPolicy"):
         make_model(data, warmup=ImitateBestProbe(2))
     gaussian = make_model(data)

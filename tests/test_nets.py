@@ -202,38 +202,6 @@ def test_candidate_location_never_chooses_an_excluded_candidate() -> None:
     assert (net.log_probs(state, exclude)[exclude] == -torch.inf).all()
 
 
-def test_a_choice_fitted_to_readings_asks_in_proportion_to_their_exp_over_the_temperature() -> None:
-    """CandidateLocationNetwork.fit_loss: zero where temperature x log pi equals the readings up to a constant per
-    state, blind to the candidates not compared and to the probes not valid, and minimised by gradient descent it
-    leaves pi proportional to exp(reading / temperature) among those compared."""
-    generator = torch.Generator().manual_seed(0)
-    readings = torch.randn(3, 2, 6, generator=generator)
-    among = torch.rand(3, 2, 6, generator=generator) < 0.6
-    among[..., :2] = True  # at least two compared
-    valid = torch.tensor([[True, False]] * 3)
-    exclude = torch.zeros(3, 2, 6, dtype=torch.bool)
-    exclude[:, :, 5] = ~among[:, :, 5]  # a candidate the choice may not take (-inf) outside those compared
-    exact = (readings / 0.5 + 3.0).masked_fill(exclude, -torch.inf).log_softmax(-1)
-    fit = CandidateLocationNetwork.fit_loss
-    assert fit(exact, readings, among, 0.5, valid) == pytest.approx(0.0, abs=1e-10)
-    noise = torch.randn(3, 2, 6, generator=generator)
-    assert fit(exact + noise * ~among, readings, among, 0.5, valid) == pytest.approx(0.0, abs=1e-10)
-    assert fit(exact + noise * ~valid[..., None], readings, among, 0.5, valid) == pytest.approx(0.0, abs=1e-10)
-    assert fit(exact + noise, readings, among, 0.5, valid) > 0.01
-    logits = torch.zeros(3, 2, 6, requires_grad=True)
-    optimizer = torch.optim.Adam([logits], lr=0.05)
-    for _ in range(800):
-        loss = fit(logits.masked_fill(exclude, -torch.inf).log_softmax(-1), readings, among, 0.5, valid)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-    assert loss.item() < 1e-6
-    for b in range(3):
-        picked = among[b, 0]
-        want = (readings[b, 0, picked] / 0.5).softmax(-1)
-        torch.testing.assert_close(logits[b, 0, picked].detach().softmax(-1), want, atol=1e-3, rtol=0)
-
-
 def test_choice_reading_from_a_feature_on_ignores_those_before_it() -> None:
     """CandidateChoice(reads_encoder=False): the choice reads the readings only, so PCRN's state (the features
     before reads_from) changes nothing; the whole-state choice does change."""

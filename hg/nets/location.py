@@ -251,30 +251,9 @@ class CandidateLocationNetwork(PolicyState):
         """log pi(a_k | s_k) of candidate requests, (..., D), (..., 4) -> (...), with the moments of the choice it
         was taken under."""
         log_probs = self.log_probs(state, exclude)
-        return (self.log_prob_of(log_probs, action), *self.moments(log_probs))
-
-    def log_prob_of(self, log_probs: Tensor, action: Tensor) -> Tensor:
-        """(..., C) log-probabilities of the candidates, (..., 4) candidate requests -> (...) log pi of these."""
-        return log_probs.gather(-1, self.index_of(action)[..., None])[..., 0]
+        log_pi = log_probs.gather(-1, self.index_of(action)[..., None])[..., 0]
+        return (log_pi, *self.moments(log_probs))
 
     def imitation_loss(self, log_pi: Tensor, mu: Tensor, action: Tensor, valid: Tensor | None = None) -> Tensor:
         """How far the policy is from a teacher's choices: their cross-entropy."""
         return -valid_mean(log_pi, valid)
-
-    @staticmethod
-    def fit_loss(log_probs: Tensor, readings: Tensor, among: Tensor | None, temperature: float,
-                 valid: Tensor | None = None) -> Tensor:
-        """Beyond the paper: how far temperature x log pi (..., C) is from a teacher's readings (..., C) of the
-        candidates it compared (`among`, None: all the choice may take; at the `valid` probes), each centred on its mean over those (a log-softmax
-        and a reading are both known up to a constant per state): a squared distance in the readings' units, so that
-        its gradient stays on the cross-entropy's scale. The least-squares choice asks for each candidate in
-        proportion to exp(its expected reading / temperature), where a copy of the best asks for each as often as
-        it wins."""
-        mask = log_probs.isfinite() if among is None else among & log_probs.isfinite()
-        mask = mask if valid is None else mask & valid[..., None]
-        count = mask.sum(-1, keepdim=True).clamp(min=1)
-
-        def centred(values: Tensor) -> Tensor:
-            return torch.where(mask, values - torch.where(mask, values, 0.0).sum(-1, keepdim=True) / count, 0.0)
-
-        return (temperature * centred(log_probs) - centred(readings)).pow(2).sum() / mask.sum().clamp(min=1)

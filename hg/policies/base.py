@@ -40,7 +40,6 @@ class PolicyEval:
     sigma: Tensor
     losses: dict[str, Tensor] = field(default_factory=dict)
     stats: dict[str, Tensor] = field(default_factory=dict)
-    log_probs: Tensor | None = None  # (B, N, C) a choice's log pi of every candidate (-inf: excluded)
 
 
 @dataclass
@@ -48,15 +47,11 @@ class Imitation:
     """What an imitating policy learns to ask for in the states of a rollout: `requests` (B, N, 4), at the `valid`
     probes (B, N) bool (None: all; an exploring warm-up leaves out a request the policy may not make there), each
     chosen `among` the candidates (B, N, C) bool that are True (None: among all the policy may take; a teacher that
-    compared a few is copied among those few, so that its pick is not read as a verdict on the ones it never saw).
-    `readings` (B, N, C): what the teacher read after each candidate `among` those (beyond the paper), for a choice
-    that fits its log-probabilities to readings / `temperature` there instead of copying `requests`."""
+    compared a few is copied among those few, so that its pick is not read as a verdict on the ones it never saw)."""
 
     requests: Tensor
     valid: Tensor | None = None
     among: Tensor | None = None
-    readings: Tensor | None = None
-    temperature: float = 1.0
 
 
 class Policy(nn.Module):

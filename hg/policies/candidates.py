@@ -11,7 +11,7 @@ from torch import Tensor
 
 from hg.nets import CandidateLocationNetwork
 from hg.nets.dims import Dims
-from hg.policies.base import Imitation, LearnedPolicy, Observation, PolicyEval
+from hg.policies.base import LearnedPolicy, Observation, PolicyEval
 from hg.policies.scans import Scan
 from hg.sim import candidate_requests
 
@@ -80,16 +80,5 @@ class CandidateChoice(LearnedPolicy):
         exclude = F.pad(probed[:, :-1], (0, 0, 1, 0), value=False)  # state s_k excludes what probes 1..k probed
         if among is not None:
             exclude = exclude | ~among
-        log_probs = self.location.log_probs(states, exclude)
-        log_pi = self.location.log_prob_of(log_probs, actions if chosen is None else chosen)
-        mu, sigma = self.location.moments(log_probs)
-        return PolicyEval(log_pi, self.baseline(states.detach()), mu, sigma, stats=self.std_stats(sigma),
-                          log_probs=log_probs)
-
-    def imitation_loss(self, evaluated: PolicyEval, imitation: Imitation) -> Tensor:
-        """A teacher's readings of the candidates it compared are fitted (CandidateLocationNetwork.fit_loss), its
-        requests copied otherwise."""
-        if imitation.readings is None:
-            return super().imitation_loss(evaluated, imitation)
-        return self.location.fit_loss(evaluated.log_probs, imitation.readings, imitation.among, imitation.temperature,
-                                      imitation.valid)
+        log_pi, mu, sigma = self.location.log_prob_and_moments(states, actions if chosen is None else chosen, exclude)
+        return PolicyEval(log_pi, self.baseline(states.detach()), mu, sigma, stats=self.std_stats(sigma))

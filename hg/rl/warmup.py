@@ -126,20 +126,15 @@ class ImitateBestProbe(Warmup):
     tends to win. Why: a choice that learns by the class reward of the probes it sampled stayed on the scan it
     started from (docs/findings.md, sections 15-17); this compares probes in the same state, with the same heads,
     every step, and needs no scan to start from. After `steps` it hands over to the hybrid rule as any warm-up does
-    (configs/parts/best_probe.yaml sets them beyond the run: it never does). `temperature`: instead of copying the
-    best, the choice fits its log-probabilities among those compared to their readings / temperature
-    (CandidateLocationNetwork.fit_loss): which of them wins on one episode depends on its pose, which the choice
-    cannot see, so a copy of the winner learns little per step and stays broad (docs/findings.md, section 19)."""
+    (configs/parts/best_probe.yaml sets them beyond the run: it never does)."""
 
     imitate = True
 
-    def __init__(self, steps: int, samples: int = 8, temperature: float | None = None) -> None:
+    def __init__(self, steps: int, samples: int = 8) -> None:
         super().__init__(steps)
         if samples < 1:  # fewer are compared where fewer are left (none at the last probe of n_probes candidates)
             raise ValueError(f"warmup.samples={samples}: compare the sent request with at least 1 other candidate")
-        if temperature is not None and not temperature > 0:
-            raise ValueError(f"warmup.temperature={temperature}: must be > 0 (null: copy the best)")
-        self.samples, self.temperature = samples, temperature
+        self.samples = samples
 
     def prober(self, policy: Policy) -> Policy:
         require_candidates(policy, "ImitateBestProbe compares")
@@ -184,11 +179,7 @@ class ImitateBestProbe(Warmup):
         among = torch.ones(batch, n_probes, n_candidates, dtype=torch.bool, device=wanted.device)
         among[:, k] = False
         among[:, k].scatter_(1, drawn, True)
-        if self.temperature is None:
-            return Imitation(wanted, valid, among)
-        readings = torch.zeros(among.shape, dtype=read.dtype, device=read.device)
-        readings[:, k].scatter_(1, drawn, read)
-        return Imitation(wanted, valid, among, readings, self.temperature)
+        return Imitation(wanted, valid, among)
 
 
 def require_candidates(policy: Policy, who: str) -> None:
