@@ -340,11 +340,15 @@ def test_a_second_object_set_is_read_against_its_own_targets():
 
 def test_merge_chooses_on_validation_compares_like_with_like_and_refuses_mixed_or_stale_records(tmp_path):
     table1 = script("reproduce_table1")
+    # the same heads behind the policy's probes and behind its scan's (test_columns.prior), seed by seed
     fake_record(table1, tmp_path, "gaussian_on_side_scan", 0, [0.9] * 10, val=0.6,  # best on test, worse on val
-                test_columns={"prior": [0.85] * 9 + [0.95]})  # its heads behind its scan: better after 10 only
-    for seed in (0, 1):  # a seed whose heads never read behind the scan: no paired comparison for the row
+                test_columns={"prior": [0.85] * 10})
+    fake_record(table1, tmp_path, "gaussian_on_side_scan", 1, [0.95] * 10, val=0.6, test_columns={"prior": [0.9] * 10})
+    for seed, prior in ((0, 0.3), (1, 0.5)):  # above its scan in one seed only
         fake_record(table1, tmp_path, "choice_on_side_scan", seed, [0.4] * 10, val=0.1,
-                    test_columns={"prior": [0.3] * 10} if seed else {})
+                    test_columns={"prior": [prior] * 10})
+    for seed in (0, 1):  # a seed whose heads never read behind a scan: no paired comparison for the row
+        fake_record(table1, tmp_path, "pcrn_nclass", seed, [0.4] * 10, test_columns={"prior": [0.3] * 10} if seed else {})
     fake_record(table1, tmp_path, "planner_copy", 0, [0.7] * 10, val=0.8)
     fake_record(table1, tmp_path, "planner_copy_library", 0, [0.8] * 10, val=0.7)
     fake_record(table1, tmp_path, "lstm", 0, [0.95] * 10, val=0.95)  # not a PCRN variant
@@ -368,11 +372,13 @@ def test_merge_chooses_on_validation_compares_like_with_like_and_refuses_mixed_o
            "probes, named by the library classifier alone)." in text
     assert "| random probes + PCRN-FC | learned | random | 2 | 0.250 +- 0.071 |" in text
     # #57's paired comparison: the same heads behind the policy's probes and behind its scan's, seed by seed
-    assert saved["rows"]["gaussian_on_side_scan"]["seeds_above_prior"] == [1] * 9 + [0]
-    assert "gain_over_prior" not in saved["rows"]["choice_on_side_scan"]
-    assert ("- learned Gaussian policy started on the side-picking scan + mirrored touch sets above its scan, the same "
-            "heads behind both, after 5 and 10 probes: not met (after 5: 0.900 against 0.850, +0.050 +- 0.000, above "
-            "in 1 of 1 seeds; after 10: 0.900 against 0.950, -0.050 +- 0.000, above in 0 of 1 seeds).") in text
+    assert saved["rows"]["choice_on_side_scan"]["seeds_above_prior"] == [1] * 10
+    assert "gain_over_prior" not in saved["rows"]["pcrn_nclass"]
+    assert ("- learned Gaussian policy started on the side-picking scan + mirrored touch sets above its scan in every "
+            "seed, the same heads behind both, after 5 and 10 probes: met (after 5: 0.925 against 0.875, +0.050 +- "
+            "0.000, above in 2 of 2 seeds; after 10:") in text
+    assert "the hybrid rule + mirrored touch sets above its scan in every seed, the same heads behind both, after 5 " \
+           "and 10 probes: not met (after 5: 0.400 against 0.400, +0.000 +- 0.141, above in 1 of 2 seeds;" in text
     assert "Beats the LSTM at every probe count from 3 on: not met at [3, 4, 5, 6, 7, 8, 9, 10]." in text
     # records the table must not take: another test set, a row defined otherwise, a split other than test
     stale = fake_record(table1, tmp_path, "lstm", 1, [0.5] * 10, fingerprint="other")
