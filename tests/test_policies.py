@@ -9,9 +9,9 @@ import torch
 import torch.nn.functional as F
 
 from hg.lightning.data import ProbeDataModule
-from hg.nets import PCRN, Dims, LSTMEncoder
-from hg.policies import (CandidateChoice, GaussianPolicy, Imitation, LineScan, Observation, RandomProbes,
-                         SidePickingScan)
+from hg.nets import PCRN, Dims, LSTMEncoder, candidate_index
+from hg.policies import (CandidateChoice, Detours, GaussianPolicy, Imitation, LineScan, Observation, Policy,
+                         RandomProbes, SidePickingScan)
 from hg.rl import rollout
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -341,3 +341,20 @@ def test_a_choice_with_a_prior_scan_learns_to_copy_it_and_refuses_a_scan_it_cann
     with pytest.raises(ValueError, match=r"model.policy.init_args.prior: SidePickingScan: request .* is not one of "
                                          r"the 25 candidates of CandidateChoice\(places=5, span=0.5.* needs places=4"):
         CandidateChoice(DIMS, places=N + 1, span=0.5, leans=(0.6, 1.0), prior=side_scan)
+
+
+def test_detours_never_send_a_place_twice_even_where_the_scan_asks_for_it_again():
+    """hg.policies.Detours: a detour may take the place the scan asks for later; the scan's request is then replaced
+    by another detour, so that the exploring copy never probes a place twice (its choice cannot)."""
+    class Again(Policy):  # a scan that asks for the first candidate at every probe
+        def act(self, obs, deterministic, generator):
+            return candidates[:1].expand(len(obs.actions), 4)
+
+    candidates = torch.rand(6, 4, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    detours = Detours(Again(), candidates, explore=0.01)
+    actions, generator = torch.zeros(B, 6, 4), torch.Generator().manual_seed(1)
+    for k in range(6):
+        actions[:, k] = detours.act(Observation(k, actions, torch.zeros(B, 6, 4)), False, generator)
+    assert torch.equal(actions[:, 0], candidates[0].expand(B, 4))  # the scan's, where not taken yet (explore 0.01)
+    sent = candidate_index(actions, candidates)
+    assert (sent.sort(1).values == torch.arange(6)).all()  # every candidate once: no place twice
