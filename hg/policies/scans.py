@@ -112,9 +112,9 @@ class SidePickingScan(LineScan):
 
 class Detours(Policy):
     """The `prior` scan's request, or with probability `explore` a candidate (C, 4) not yet probed, drawn at random
-    (always drawn: `deterministic` reaches only the scan): the prober of hg.rl.ExploreAroundPrior's warm-up. Where an
-    earlier detour took the place the scan now asks for, it detours again: the choice it teaches never probes a place
-    twice."""
+    (always drawn: `deterministic` reaches only the scan): the prober of hg.rl.ExploreAroundPrior's warm-up. Where the
+    scan asks for a place probed already (an earlier detour took it), it detours again: the choice it teaches never
+    probes a place twice."""
 
     def __init__(self, prior: Policy, candidates: Tensor, explore: float) -> None:
         super().__init__()
@@ -125,6 +125,6 @@ class Detours(Policy):
         sent = candidate_index(obs.actions[:, :obs.k].cpu(), self.candidates)  # (B, k)
         probed = F.one_hot(sent, len(self.candidates)).bool().any(1)  # (B, C)
         draw = torch.rand(len(request), len(self.candidates), generator=generator).masked_fill(probed, -1.0)
-        again = probed.gather(1, candidate_index(request, self.candidates)[:, None])[:, 0]
-        detour = (torch.rand(len(request), generator=generator) < self.explore) | again
+        taken = probed.gather(1, candidate_index(request, self.candidates)[:, None])[:, 0] & ~probed.all(1)
+        detour = (torch.rand(len(request), generator=generator) < self.explore) | taken
         return torch.where(detour[:, None], self.candidates[draw.argmax(-1)], request)
