@@ -7,7 +7,9 @@ docs/results/new_protocol's planner readings) and the same validation episodes f
 and -x leans swapped, as the library's mirror images are made; the across-line regions keep a mirrored pose in its
 split). The exact planner breaks a tie between mirror-image candidates by float rounding, and every episode faces one
 after the first, straight probe; an episode and its mirror image meet it with the same readings, so each planner sends
-the pair down both branches whichever way it breaks the tie, and the tie moves no accuracy.
+the pair down both branches whichever way it breaks the tie, and the tie moves no accuracy. On a set with a chiral
+object (hg.sim.symmetry) a mirror image is another pose of another shape: the library has none (as scripts/plan.py's
+on such a set, scripts/reproduce_table1.py's `on_set`) and the episodes are not mirrored, so no tie is structural.
 
 The reference is the planner as it was: the classifier weighs the whole library and the planner every library episode
 (LibraryClassifier(prune=None)); the default keeps per episode the library episodes within PRUNE of its best and ranks
@@ -24,7 +26,8 @@ clock). `--profile` prints cProfile's top functions of one chunk for each planne
 
 Last line: JSON {"reference_decisions_per_s", "decisions_per_s", "speedup" (of the medians), "speedup_spread" (the
 smallest and largest ratio of one chunk's two timings), "reference_acc5", "acc5", "reference_acc10", "acc10",
-"learned_decisions_per_s", "episodes", "library_size", "prune", "samples", "refine", "host", "commit"}.
+"learned_decisions_per_s", "episodes", "mirrored" (whether the library and the episodes hold mirror images),
+"library_size", "prune", "samples", "refine", "objects", "host", "commit"}.
 """
 from __future__ import annotations
 
@@ -46,7 +49,7 @@ from hg.rl.rollout import rollout
 from hg.sim import ProbeSimulator, Scene, sample_episodes
 from hg.sim.heldout import make_regions
 from hg.sim.scene import mirrored_directions
-from hg.sim.symmetry import require_mirror
+from hg.sim.symmetry import every_mirror
 
 N_PROBES = 10
 
@@ -78,7 +81,7 @@ def accuracy(named: np.ndarray, labels: np.ndarray, after: int) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--objects", default="hg4")
-    parser.add_argument("--episodes", type=int, default=512, help="validation episodes drawn (and as many mirrored)")
+    parser.add_argument("--episodes", type=int, default=512, help="validation episodes drawn (and as many mirrored, on a set of mirror-symmetric objects)")
     parser.add_argument("--library", type=int, default=32768, help="library episodes drawn, before moves and mirrors")
     parser.add_argument("--shifts", type=int, default=5)
     parser.add_argument("--seed", type=int, default=0, help="of the validation episodes (plan.py's --seed)")
@@ -87,17 +90,17 @@ def main() -> None:
     torch.set_num_threads(1)
 
     regions, grid = make_regions("across_line", Scene(), 0), CandidateGrid()
-    recipe = LibraryRecipe(args.library, "train", args.shifts, True, 0)
     with ProbeSimulator(args.objects, batch_size=1024, mode="ideal", seed=0) as sim:
-        require_mirror(sim.objects, "bench_planner's mirrored validation episodes")
+        mirror = every_mirror(sim.objects)
+        recipe = LibraryRecipe(args.library, "train", args.shifts, mirror, 0)
         library = recipe.draw(sim, regions, grid)
         classifiers = {name: LibraryClassifier.build(sim, regions, grid, recipe, prune=prune, drawn=library)
                        for name, prune in (("reference", None), ("default", PRUNE))}
         n_classes = len(sim.classes)
         labels, poses = sample_episodes(regions, "val", args.episodes, n_classes, np.random.default_rng(args.seed))
         drawn = readings(sim, labels, poses, grid.requests(), clean=True)
-    query = torch.from_numpy(np.concatenate([drawn, mirrored(drawn, grid)]))
-    labels2 = np.concatenate([labels, labels])
+    query = torch.from_numpy(np.concatenate([drawn, mirrored(drawn, grid)]) if mirror else drawn)
+    labels2 = np.concatenate([labels, labels]) if mirror else labels
     planners = {name: GreedyPlanner(classifier) for name, classifier in classifiers.items()}
 
     if args.profile:
@@ -135,8 +138,8 @@ def main() -> None:
               "acc5": accuracy(named["default"], labels2, 5),
               "reference_acc10": accuracy(named["reference"], labels2, 10),
               "acc10": accuracy(named["default"], labels2, 10), "learned_decisions_per_s": round(learned, 1),
-              "episodes": len(query), "library_size": len(library[0]), "prune": PRUNE, "samples": SAMPLES,
-              "refine": REFINE, "host": hardware(), "commit": commit()}
+              "episodes": len(query), "mirrored": mirror, "library_size": len(library[0]), "prune": PRUNE, "samples": SAMPLES,
+              "refine": REFINE, "objects": args.objects, "host": hardware(), "commit": commit()}
     spread = f"chunk by chunk {ratios.min():.2f}x to {ratios.max():.2f}x"
     print(f"reference {rate['reference']:.1f} decisions/s, default {rate['default']:.1f} ({result['speedup']}x; "
           f"{spread}), learned policy {learned:.1f}; accuracy after 5 / 10 probes: reference "

@@ -147,6 +147,12 @@ def object_symmetries(objects: ObjectSet, tolerance: float = TOLERANCE, points: 
 _FOUND: dict[tuple, tuple[Symmetry, ...]] = {}
 
 
+def every_mirror(objects: ObjectSet) -> bool:
+    """Whether every object of the set is its own mirror image across the probe line's plane (up to a turn), so a
+    component may read an episode and its mirror image alike."""
+    return all(s.mirror for s in object_symmetries(objects))
+
+
 def require_mirror(objects: ObjectSet, who: str) -> None:
     """Refuse a component (`who`) that reads an episode and its mirror image across the probe line alike, for an
     object set with chiral objects (check_mirror)."""
