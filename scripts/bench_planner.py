@@ -81,7 +81,8 @@ def accuracy(named: np.ndarray, labels: np.ndarray, after: int) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--objects", default="hg4")
-    parser.add_argument("--episodes", type=int, default=512, help="validation episodes drawn (and as many mirrored, on a set of mirror-symmetric objects)")
+    parser.add_argument("--episodes", type=int, default=512,
+                        help="validation episodes drawn (and as many mirrored, on a set of mirror-symmetric objects)")
     parser.add_argument("--library", type=int, default=32768, help="library episodes drawn, before moves and mirrors")
     parser.add_argument("--shifts", type=int, default=5)
     parser.add_argument("--seed", type=int, default=0, help="of the validation episodes (plan.py's --seed)")
@@ -138,8 +139,8 @@ def main() -> None:
               "acc5": accuracy(named["default"], labels2, 5),
               "reference_acc10": accuracy(named["reference"], labels2, 10),
               "acc10": accuracy(named["default"], labels2, 10), "learned_decisions_per_s": round(learned, 1),
-              "episodes": len(query), "mirrored": mirror, "library_size": len(library[0]), "prune": PRUNE, "samples": SAMPLES,
-              "refine": REFINE, "objects": args.objects, "host": hardware(), "commit": commit()}
+              "episodes": len(query), "mirrored": mirror, "library_size": len(library[0]), "prune": PRUNE,
+              "samples": SAMPLES, "refine": REFINE, "objects": args.objects, "host": hardware(), "commit": commit()}
     spread = f"chunk by chunk {ratios.min():.2f}x to {ratios.max():.2f}x"
     print(f"reference {rate['reference']:.1f} decisions/s, default {rate['default']:.1f} ({result['speedup']}x; "
           f"{spread}), learned policy {learned:.1f}; accuracy after 5 / 10 probes: reference "
