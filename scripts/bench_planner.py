@@ -1,15 +1,16 @@
 """Planner decisions per second: the exact greedy planner (the reference) against the default one, with a learned
 policy's beside them, and both planners' validation accuracies, in one run.
 
-One library (--library training episodes with their moves by up to --shifts place steps and their mirror images, as
-docs/results/new_protocol's planner readings) and the same validation episodes for both planners: --episodes drawn with
---seed (as scripts/plan.py draws them) and the mirror image of each across the line (its readings with each place's +x
-and -x leans swapped, as the library's mirror images are made; the across-line regions keep a mirrored pose in its
-split). The exact planner breaks a tie between mirror-image candidates by float rounding, and every episode faces one
-after the first, straight probe; an episode and its mirror image meet it with the same readings, so each planner sends
-the pair down both branches whichever way it breaks the tie, and the tie moves no accuracy. On a set with a chiral
-object (hg.sim.symmetry) a mirror image is another pose of another shape: the library has none (as scripts/plan.py's
-on such a set, scripts/reproduce_table1.py's `on_set`) and the episodes are not mirrored, so no tie is structural.
+One library (--library training episodes with their moves by up to --shifts place steps and, on a set of
+mirror-symmetric objects, their mirror images, as docs/results/new_protocol's planner readings) and the same validation
+episodes for both planners: --episodes drawn with --seed (as scripts/plan.py draws them) and, on such a set, the mirror
+image of each across the line (its readings with each place's +x and -x leans swapped, as the library's mirror images
+are made; the across-line regions keep a mirrored pose in its split). The exact planner breaks a tie between
+mirror-image candidates by float rounding, and every episode faces one after the first, straight probe; an episode and
+its mirror image meet it with the same readings, so each planner sends the pair down both branches whichever way it
+breaks the tie, and the tie moves no accuracy. On a set with a chiral object (hg.sim.symmetry) a mirror image shows
+another shape, so neither the library nor the episodes hold any (as scripts/reproduce_table1.py runs plan.py there,
+without --mirror), and no tie is structural.
 
 The reference is the planner as it was: the classifier weighs the whole library and the planner every library episode
 (LibraryClassifier(prune=None)); the default keeps per episode the library episodes within PRUNE of its best and ranks
@@ -49,7 +50,7 @@ from hg.rl.rollout import rollout
 from hg.sim import ProbeSimulator, Scene, sample_episodes
 from hg.sim.heldout import make_regions
 from hg.sim.scene import mirrored_directions
-from hg.sim.symmetry import every_mirror
+from hg.sim.symmetry import all_mirror_symmetric
 
 N_PROBES = 10
 
@@ -92,7 +93,7 @@ def main() -> None:
 
     regions, grid = make_regions("across_line", Scene(), 0), CandidateGrid()
     with ProbeSimulator(args.objects, batch_size=1024, mode="ideal", seed=0) as sim:
-        mirror = every_mirror(sim.objects)
+        mirror = all_mirror_symmetric(sim.objects)
         recipe = LibraryRecipe(args.library, "train", args.shifts, mirror, 0)
         library = recipe.draw(sim, regions, grid)
         classifiers = {name: LibraryClassifier.build(sim, regions, grid, recipe, prune=prune, drawn=library)

@@ -178,9 +178,9 @@ def on_set(spec: Row, objects: str, composition: list[str]) -> tuple[tuple[str, 
     if objects == "hg4":
         return spec.plan, spec.overrides
     from hg.sim import load_object_set
-    from hg.sim.symmetry import every_mirror
+    from hg.sim.symmetry import all_mirror_symmetric
 
-    mirror = every_mirror(load_object_set(objects))
+    mirror = all_mirror_symmetric(load_object_set(objects))
     def on_this_set(args: tuple[str, ...]) -> tuple[str, ...]:
         return args if mirror else tuple(a for a in args if a != "--mirror")
 

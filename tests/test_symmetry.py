@@ -6,7 +6,7 @@ import pytest
 import trimesh
 
 from hg.sim import load_object_set
-from hg.sim.symmetry import check_mirror, find_symmetry, object_symmetries, turn_matrix
+from hg.sim.symmetry import all_mirror_symmetric, check_mirror, find_symmetry, object_symmetries, turn_matrix
 
 PYB10 = Path(__file__).resolve().parents[1] / "data" / "objects" / "pyb10"
 
@@ -38,6 +38,7 @@ def test_a_chiral_blob_has_no_turn_and_no_mirror(pyb10):
     assert s.mirror_error > 1.5 * 0.015 and s.turn_error > 2 * 0.015  # far from the tolerance, not by a hair
     with pytest.raises(ValueError, match="blob_002"):
         check_mirror(pyb10.names, object_symmetries(pyb10))
+    assert not all_mirror_symmetric(pyb10) and all_mirror_symmetric(load_object_set("hg4"))
 
 
 def test_a_mirror_plane_is_found_at_any_angle(pyb10):

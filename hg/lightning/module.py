@@ -15,7 +15,7 @@ from hg.policies import Imitation, LearnedPolicy, Policy
 from hg.rl import HybridLoss, Rollout, rollout
 from hg.rl.warmup import FollowPrior, ImitateTeacher, Warmup
 from hg.sim import ProbeSimulator
-from hg.sim.symmetry import every_mirror, require_mirror
+from hg.sim.symmetry import all_mirror_symmetric, require_mirror
 from hg.lightning.library import LibrarySource
 
 Regime = Literal["classify", "reinforce", "imitate"]  # what a training step's loss trains
@@ -86,7 +86,7 @@ class HapticGlance(pl.LightningModule):
             if isinstance(module, TouchSetClassifier):
                 module.line_x = sim.scene.probe_x * self.hparams.point_scale
                 if module.mirror == "auto":
-                    module.mirror = every_mirror(sim.objects)
+                    module.mirror = all_mirror_symmetric(sim.objects)
                 elif module.mirror:
                     require_mirror(sim.objects, "model.heads: TouchSetClassifier(mirror=true)")
 

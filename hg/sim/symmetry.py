@@ -147,7 +147,7 @@ def object_symmetries(objects: ObjectSet, tolerance: float = TOLERANCE, points: 
 _FOUND: dict[tuple, tuple[Symmetry, ...]] = {}
 
 
-def every_mirror(objects: ObjectSet) -> bool:
+def all_mirror_symmetric(objects: ObjectSet) -> bool:
     """Whether every object of the set is its own mirror image across the probe line's plane (up to a turn), so a
     component may read an episode and its mirror image alike."""
     return all(s.mirror for s in object_symmetries(objects))
