@@ -70,6 +70,7 @@ IMITATES = {"gaussian_on_side_scan.yaml": False, "planner_copy.yaml": True,  # t
             "parts/choice_on_scan.yaml": True, "parts/explore_copy.yaml": True, "parts/best_probe.yaml": True}
 PRIOR = {"gaussian_on_side_scan.yaml": "SidePickingScan", "parts/choice_on_scan.yaml": "SidePickingScan",
          "parts/best_probe.yaml": None}  # None: the part removes the scan
+COMPARE_WITH = {"parts/best_probe.yaml": "SidePickingScan"}  # the scan the policy no longer starts on
 HEAD = {"pcrn_nclass.yaml": "NClassClassifier", "lstm.yaml": "LinearClassifier"}
 ENCODER = {"lstm.yaml": "LSTMEncoder", "parts/centred_points.yaml": "CentredPCRN"}
 N_PROBES = {"planner_copy.yaml": 10}  # its teachers' probes (args_of); tiny.yaml's 4 otherwise
@@ -115,6 +116,7 @@ def test_composition_fits_and_tests_through_the_cli(row, tmp_path, monkeypatch):
         assert model.policy.reads_detached and model.policy.count_width == n_probes
     assert type(model.policy).__name__ == set_by(parts, POLICY)
     assert type(getattr(model.policy, "prior", None)).__name__ == (set_by(parts, PRIOR) or "NoneType")
+    assert type(model.compare_with).__name__ == set_by(parts, COMPARE_WITH, "NoneType")
     heads = [type(h).__name__ for h in model.heads]
     assert heads == ([set_by(parts, HEAD, "FCClassifier")] + ["TouchSetClassifier"] * 2 * touch_sets)
     if touch_sets:
@@ -153,12 +155,12 @@ def test_composition_fits_and_tests_through_the_cli(row, tmp_path, monkeypatch):
     for key, value in model.state_dict().items():
         torch.testing.assert_close(loaded.state_dict()[key], value, msg=key)
     # hg test of the last checkpoint: single-rollout accuracy after each probe, for the heads, the mean-action
-    # policy of a learned one, the same heads behind a learned policy's prior scan, and the library classifier alone
-    # and mixed with the heads
+    # policy of a learned one, the same heads behind a learned policy's prior scan or the scan it is compared with,
+    # and the library classifier alone and mixed with the heads
     test = cli(["test", *args_of(parts, "--trainer.default_root_dir", str(root)),
                 "--ckpt_path", str(root / "checkpoints" / "last.ckpt")])
     library = "parts/library_classifier.yaml" in parts
-    on_prior = set_by(parts, PRIOR) is not None  # a learned policy's, as asserted above
+    on_prior = model.reference_scan is not None  # a learned policy's prior or compare_with, as asserted above
     rollouts = ["stochastic", *["mean_action"] * model.policy.learned, *["prior"] * on_prior]
     columns = [*rollouts, *(f"{r}_{who}" for who in ("library", "mixed") for r in rollouts if library)]
     table = list(csv.reader((root / "per_probe_accuracy.csv").open()))
@@ -538,6 +540,23 @@ def test_a_policy_on_a_prior_scan_is_also_scored_behind_the_scan(data):
     torch.testing.assert_close(handed[0][False][0].requests, rolled.requests)
     plain = trainer.validate(make_model(data), datamodule=data, verbose=False)[0]
     assert "val/acc@4" in plain and not any(k.startswith("val/acc_prior") for k in plain)
+    # a policy from no scan is compared with the scan it is given (model.compare_with), the same way
+    compared = make_model(data, heads=[TouchCount], compare_with=LineScan)
+    assert compared.reference_scan is compared.compare_with and compared.policy.prior is None
+    behind_given = (compared.predict(compared.roll(labels, poses, seed, policy=compared.compare_with))[0].argmax(-1)
+                    == labels[:, None]).float().mean(0).tolist()
+    assert behind_given == pytest.approx(behind_scan)  # the same scan and heads: the same reading
+    logged = trainer.validate(compared, datamodule=data, verbose=False)[0]
+    assert [logged[f"val/acc_prior@{k + 1}"] for k in range(4)] == pytest.approx(behind_given)
+
+
+@pytest.mark.parametrize("policy, message", [
+    (lambda dims: GaussianPolicy(dims, hidden=32, prior=LineScan), r"compared with its prior scan \(LineScan"),
+    (LineScan, r"the policy \(LineScan\) is a fixed one itself"),
+])
+def test_a_scan_to_compare_with_is_refused_where_it_means_nothing(data, policy, message):
+    with pytest.raises(ValueError, match=r"model.compare_with: .*" + message):
+        make_model(data, policy=policy, compare_with=SidePickingScan)
 
 
 

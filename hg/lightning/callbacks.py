@@ -39,7 +39,7 @@ def run_dir(trainer: pl.Trainer) -> Path:
 
 def per_probe_table(metrics: dict, stage: str, n_probes: int) -> dict[str, list[float]]:
     """Columns of accuracy after probe k = 1..N found in logged metrics: the learned heads on stochastic and
-    mean-action rollouts and behind the policy's prior scan (HapticGlance._eval_step) and, with a library classifier
+    mean-action rollouts and behind its reference scan (HapticGlance._eval_step) and, with a library classifier
     (model.library_classifier), it alone and mixed with them."""
     columns = {}
     for who in ("", "_library", "_mixed"):
@@ -127,8 +127,8 @@ class PerProbeAccuracy(pl.Callback):
         plot_path = folder / "per_probe_accuracy.png"
         policy = pl_module.policy
 
-        def prober(label: str) -> str:  # the prior columns are the scan's probes
-            return type(policy.prior if label.startswith("prior") else policy).__name__
+        def prober(label: str) -> str:  # the prior columns are the reference scan's probes
+            return type(pl_module.reference_scan if label.startswith("prior") else policy).__name__
 
         write_atomic(plot_path, accuracy_plot({f"{prober(label)} ({label} rollout)": values
                                                for label, values in columns.items()}))

@@ -11,7 +11,7 @@ from torch import Tensor, nn
 
 from hg.nets import TouchSetClassifier
 from hg.nets.dims import Dims
-from hg.policies import Imitation, LearnedPolicy, Policy
+from hg.policies import Imitation, LearnedPolicy, Policy, Scan
 from hg.rl import HybridLoss, Rollout, rollout
 from hg.rl.warmup import FollowPrior, ImitateTeacher, Warmup
 from hg.sim import ProbeSimulator
@@ -29,13 +29,16 @@ class HapticGlance(pl.LightningModule):
     after the last probe). library_classifier: beyond the paper, a non-learned Bayes classifier over a library of
     simulated training episodes, scored alone and mixed with the heads at validation and test, never trained
     (hg.planner). warmup: beyond the paper, what probes before the policy learns (itself untrained, its prior scan,
-    or a teacher to copy). loss: eq. (6)'s settings.
+    or a teacher to copy). loss: eq. (6)'s settings. compare_with: beyond the paper, a fixed scan the heads also read
+    behind at validation and test, for a learned policy with no prior scan of its own (one with a prior is compared
+    with its prior): what the learned probes buy over the scan, the classifiers held equal.
     """
 
     def __init__(self, encoder: nn.Module, policy: Callable[[Dims], Policy], heads: list[Callable[[Dims], nn.Module]],
                  loss: HybridLoss = HybridLoss(), warmup: Warmup | None = None,
-                 library_classifier: LibrarySource | None = None, lr: float = 1e-3, policy_lr_scale: float = 1.0,
-                 point_scale: float = 2.0, n_probes: int = 10, n_classes: int = 4) -> None:
+                 library_classifier: LibrarySource | None = None, compare_with: Callable[[Dims], Scan] | None = None,
+                 lr: float = 1e-3, policy_lr_scale: float = 1.0, point_scale: float = 2.0, n_probes: int = 10,
+                 n_classes: int = 4) -> None:
         super().__init__()
         if n_probes < 1:
             raise ValueError(f"model.n_probes={n_probes}: must be >= 1")
@@ -60,8 +63,22 @@ class HapticGlance(pl.LightningModule):
         if library_classifier is not None and getattr(self.policy, "grid", None) is None:
             raise ValueError(f"model.library_classifier names the planner's candidate probes; "
                              f"{type(self.policy).__name__} does not choose among them (CandidateChoice does)")
+        self.compare_with = compare_with(dims) if compare_with is not None else None
+        if self.compare_with is not None and not self.policy.learned:
+            raise ValueError(f"model.compare_with: the policy ({type(self.policy).__name__}) is a fixed one itself; "
+                             "compare two fixed policies as two runs")
+        if self.compare_with is not None and self.policy.prior is not None:
+            raise ValueError(f"model.compare_with: the policy is compared with its prior scan "
+                             f"({type(self.policy.prior).__name__}, model.policy.init_args.prior); give one of the two")
         self.library = None  # the library classifier, built in setup() from its source (it needs the simulator)
         self.sim: ProbeSimulator | None = None
+
+    @property
+    def reference_scan(self) -> Policy | None:
+        """The scan the heads also read behind at validation and test (`acc_prior`): the policy's prior, or
+        compare_with."""
+        prior = getattr(self.policy, "prior", None)  # a fixed policy has none
+        return prior if prior is not None else self.compare_with
 
     # -- world ---------------------------------------------------------------------------------------
     def setup(self, stage: str) -> None:
@@ -175,17 +192,17 @@ class HapticGlance(pl.LightningModule):
     # -- evaluation ----------------------------------------------------------------------------------
     def _eval_step(self, batch: dict[str, Tensor], stage: str) -> dict[bool, tuple[Rollout, Tensor]]:
         """Single-rollout accuracy after each probe: the stochastic policy, and for a learned policy also the
-        mean-action policy, each labelled; never an average over several rollouts. A learned policy started on a
-        prior scan is also scored by the same heads behind that scan (`acc_prior`): what its learned probes buy over
-        the scan's, with the classifiers held equal. With a library classifier, its accuracy alone (`acc_library`)
-        and mixed with the heads (`acc_mixed`) too, under their own names. Returns {deterministic: (rollout,
-        logits)} of the policy's own rollouts, which callbacks (ProbeMaps) get as the step's outputs."""
+        mean-action policy, each labelled; never an average over several rollouts. A learned policy is also scored
+        by the same heads behind its reference scan (`acc_prior`: its prior, or compare_with): what its learned
+        probes buy over the scan's, with the classifiers held equal. With a library classifier, its accuracy alone
+        (`acc_library`) and mixed with the heads (`acc_mixed`) too, under their own names. Returns {deterministic:
+        (rollout, logits)} of the policy's own rollouts, which callbacks (ProbeMaps) get as the step's outputs."""
         labels, seed, scored = batch["labels"], int(batch["seed"]), {}
         variants = [("", False, None)]  # (metric suffix, deterministic, the policy probing instead of the model's)
         if self.policy.learned:
             variants.append(("_mean_action", True, None))
-            if self.policy.prior is not None:
-                variants.append(("_prior", False, self.policy.prior))
+            if self.reference_scan is not None:
+                variants.append(("_prior", False, self.reference_scan))
         for suffix, deterministic, probe_with in variants:
             rollout = self.roll(labels, batch["poses"], seed, deterministic=deterministic, policy=probe_with)
             logits, _ = self.predict(rollout)
