@@ -160,6 +160,17 @@ def test_changed_hyperparameters_compares_injected_parts_field_by_field():
         "model.policy.class_path=hg.policies.GaussianPolicy (now hg.policies.LineScan)"]
 
 
+def test_a_file_setting_moved_to_another_clone_is_the_same_setting_only_with_the_same_bytes(tmp_path):
+    from hg.lightning.experiment import changed_hyperparameters
+
+    here, there, edited = tmp_path / "a.urdf", tmp_path / "b.urdf", tmp_path / "c.urdf"
+    here.write_text("<robot/>"), there.write_text("<robot/>"), edited.write_text("<robot name='x'/>")
+    saved = {"datamodule_hyper_parameters": {"robot": str(here)}}
+    assert changed_hyperparameters(saved, {}, {"robot": str(there)}) == []
+    assert changed_hyperparameters(saved, {}, {"robot": str(edited)}) == [f'data.robot="{here}" (now "{edited}")']
+    assert changed_hyperparameters(saved, {}, {"robot": str(tmp_path / "gone.urdf")}) != []
+
+
 def test_a_run_stopped_by_sigterm_resumes_is_recorded_once_and_refuses_another_composition(tmp_path):
     out, ckpt = tmp_path / "results", tmp_path / "ckpt"
     args = ["--rows", "random", "--seeds", "0", "--test-episodes", "32", "--out", str(out), "--runs-dir", str(ckpt),
