@@ -269,6 +269,10 @@ def test_the_touch_reward_trains_through_a_warm_up_and_pays_the_contacts(tmp_pat
     ("choice_on_side_scan", ["--model.warmup.init_args.imitate", "false"],
      r"model.policy.init_args.prior: CandidateChoice starts on its prior scan only by copying it"),
     ("choice_on_side_scan", ["--model.warmup", "null"], r"model.policy.init_args.prior: CandidateChoice starts on"),
+    ("side_scan", ["--model.compare_with", "hg.policies.LineScan"],
+     r"model.compare_with: the policy \(SidePickingScan\) is a fixed one itself"),
+    ("choice_on_side_scan", ["--model.compare_with", "hg.policies.LineScan"],
+     r"model.compare_with: the policy is compared with its prior scan \(SidePickingScan"),
     ("gaussian_on_side_scan", ["--model.warmup", "hg.rl.ExploreAroundPrior"],
      r"model.warmup: ExploreAroundPrior draws its detours among the policy's candidates; GaussianPolicy has none"),
     ("exploring_choice_on_side_scan", ["--model.warmup.init_args.explore", "0"], r"warmup.explore=0.0: .* \(0, 1\]"),
@@ -548,16 +552,6 @@ def test_a_policy_on_a_prior_scan_is_also_scored_behind_the_scan(data):
     assert behind_given == pytest.approx(behind_scan)  # the same scan and heads: the same reading
     logged = trainer.validate(compared, datamodule=data, verbose=False)[0]
     assert [logged[f"val/acc_prior@{k + 1}"] for k in range(4)] == pytest.approx(behind_given)
-
-
-@pytest.mark.parametrize("policy, message", [
-    (lambda dims: GaussianPolicy(dims, hidden=32, prior=LineScan), r"compared with its prior scan \(LineScan"),
-    (LineScan, r"the policy \(LineScan\) is a fixed one itself"),
-])
-def test_a_scan_to_compare_with_is_refused_where_it_means_nothing(data, policy, message):
-    with pytest.raises(ValueError, match=r"model.compare_with: .*" + message):
-        make_model(data, policy=policy, compare_with=SidePickingScan)
-
 
 
 def test_a_curve_begun_by_code_that_scored_fewer_columns_is_continued(tmp_path):
