@@ -56,7 +56,7 @@ def run(base: list[str], override: str, seed: int, steps: int, val_episodes: int
 
     return {"val_accuracy": [round(float(metrics[f"val/acc@{k}"]), 4) for k in range(1, n + 1)],
             "val_accuracy_mean_action": column("acc_mean_action"),
-            "val_accuracy_prior": column("acc_prior"),  # the same heads behind the policy's prior scan
+            "val_accuracy_prior": column("acc_prior"),  # the same heads behind the policy's prior scan or compare_with
             "val_touch_rate": round(float(metrics["val/touch_rate"]), 4),
             "train_late": {k: round(v, 4) for k, v in summary.items()},
             "train_curve": [{k: round(v, 4) for k, v in row.items()} for row in diagnostics.rows],  # every logged row

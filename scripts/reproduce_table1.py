@@ -494,19 +494,19 @@ def second_set_targets(table: dict[str, dict]) -> list[str]:
     return lines
 
 
-def gains_over_own_scan(table: dict[str, dict]) -> list[str]:
-    """#57's "above the best fixed scan with the same classifiers": a policy against its own heads behind its prior
-    scan, or the scan it is compared with from no scan (only the probes differ), met when above in every seed after 5
-    and 10 probes (a mean is not enough)."""
+def gains_over_reference_scan(table: dict[str, dict]) -> list[str]:
+    """#57's "above the best fixed scan with the same classifiers": a policy against its own heads behind its reference
+    scan (its prior scan, or from no scan model.compare_with; only the probes differ), met when above in every seed
+    after 5 and 10 probes (a mean is not enough)."""
     rows = [row for row in table if len(table[row].get("gain_over_prior", ())) >= 5]
     if not rows:
-        return ["- No learned policy's runs scored their heads behind their prior scan: not compared."]
+        return ["- No learned policy's runs scored their heads behind their reference scan: not compared."]
     lines = []
     for row in rows:
         entry, shown = table[row], [k for k in (5, 10) if k <= len(table[row]["gain_over_prior"])]
         every = all(entry["seeds_above_prior"][k - 1] == len(entry["seeds"]) for k in shown)
         lines.append(
-            f"- {entry['label']} above its prior scan in every seed, the same heads behind both, after "
+            f"- {entry['label']} above its reference scan in every seed, the same heads behind both, after "
             f"{' and '.join(map(str, shown))} probes: {'met' if every else 'not met'} (" + "; ".join(
                 f"after {k}: {entry['accuracy'][k - 1]:.3f} against {entry['accuracy_prior'][k - 1]:.3f}, "
                 f"{entry['gain_over_prior'][k - 1]:+.3f} +- {entry['gain_over_prior_std'][k - 1]:.3f}, above in "
@@ -591,11 +591,11 @@ def markdown(table: dict[str, dict], merged_at: str, test_episodes: int, objects
               "", "## Targets (issue #4)", "", *targets(table), ""]
     if objects != "hg4":
         lines += ["## Targets on this second object set (issue #56)", "", *second_set_targets(table), ""]
-    lines += ["## Learned probes against their prior scan, the same heads (issue #57)", "",
-              "Each seed's heads read the test episodes twice, behind the policy's probes and behind its prior scan's "
-              "(`test/acc_prior`; from no scan, the scan given as `model.compare_with`); the gain is their difference, "
-              "mean +- std over the seeds.", "",
-              *gains_over_own_scan(table), ""]
+    lines += ["## Learned probes against their reference scan, the same heads (issue #57)", "",
+              "Each seed's heads read the test episodes twice, behind the policy's probes and behind its reference "
+              "scan's (`test/acc_prior`): the prior scan it started on, or from no scan the scan given as "
+              "`model.compare_with`; the gain is their difference, mean +- std over the seeds.", "",
+              *gains_over_reference_scan(table), ""]
     return "\n".join(lines)
 
 

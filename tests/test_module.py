@@ -96,6 +96,19 @@ def args_of(parts: list[str], *extra: str) -> list[str]:
     return [*args, *QUIET, *extra]
 
 
+def test_the_side_scan_is_the_same_wherever_a_config_names_it():
+    """The scan a choice starts on (prior) and the one a choice from no scan is compared with (compare_with) are
+    configs/side_scan.yaml's, written out again in each part: an edit to one must reach the others."""
+    def model(part: str) -> dict:
+        return yaml.safe_load((CONFIGS / part).read_text())["model"]
+
+    scan = model("side_scan.yaml")["policy"]
+    assert scan["class_path"] == "hg.policies.SidePickingScan"
+    assert model("parts/choice_on_scan.yaml")["policy"]["init_args"]["prior"] == scan
+    assert model("parts/best_probe.yaml")["compare_with"] == scan
+    assert model("gaussian_on_side_scan.yaml")["policy"]["init_args"]["prior"] == scan
+
+
 def test_every_config_file_is_in_a_tested_composition():
     shipped = {str(p.relative_to(CONFIGS)) for p in CONFIGS.rglob("*.yaml")}
     assert shipped - {"parts/tiny.yaml"} == {part for parts in ROWS.values() for part in parts}
@@ -160,7 +173,7 @@ def test_composition_fits_and_tests_through_the_cli(row, tmp_path, monkeypatch):
     test = cli(["test", *args_of(parts, "--trainer.default_root_dir", str(root)),
                 "--ckpt_path", str(root / "checkpoints" / "last.ckpt")])
     library = "parts/library_classifier.yaml" in parts
-    on_prior = model.reference_scan is not None  # a learned policy's prior or compare_with, as asserted above
+    on_prior = model.policy.learned and (set_by(parts, PRIOR) or set_by(parts, COMPARE_WITH)) is not None
     rollouts = ["stochastic", *["mean_action"] * model.policy.learned, *["prior"] * on_prior]
     columns = [*rollouts, *(f"{r}_{who}" for who in ("library", "mixed") for r in rollouts if library)]
     table = list(csv.reader((root / "per_probe_accuracy.csv").open()))
@@ -515,7 +528,7 @@ class TouchCount(nn.Module):
 def test_a_policy_on_a_prior_scan_is_also_scored_behind_the_scan(data):
     """Validation scores a learned policy started on a prior scan twice with the same heads: behind its own probes
     (acc) and behind the scan's (acc_prior), the comparison that says what its learned probes buy; a policy without
-    a prior is scored behind its own probes only."""
+    a prior is scored behind its own probes only, unless given a scan to compare with (model.compare_with)."""
     trainer = pl.Trainer(logger=False, enable_checkpointing=False, enable_progress_bar=False,
                          enable_model_summary=False, accelerator="cpu")
     on_scan = make_model(data, policy=lambda dims: GaussianPolicy(dims, hidden=32, prior=LineScan), heads=[TouchCount])

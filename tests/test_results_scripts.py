@@ -169,6 +169,7 @@ def test_a_file_setting_moved_to_another_clone_is_the_same_setting_only_with_the
     assert changed_hyperparameters(saved, {}, {"robot": str(there)}) == []
     assert changed_hyperparameters(saved, {}, {"robot": str(edited)}) == [f'data.robot="{here}" (now "{edited}")']
     assert changed_hyperparameters(saved, {}, {"robot": str(tmp_path / "gone.urdf")}) != []
+    assert changed_hyperparameters({"datamodule_hyper_parameters": {"name": "a" * 300}}, {}, {"name": "b" * 300})
 
 
 def test_a_run_stopped_by_sigterm_resumes_is_recorded_once_and_refuses_another_composition(tmp_path):
@@ -385,13 +386,13 @@ def test_merge_chooses_on_validation_compares_like_with_like_and_refuses_mixed_o
     # #57's paired comparison: the same heads behind the policy's probes and behind its scan's, seed by seed
     assert saved["rows"]["choice_on_side_scan"]["seeds_above_prior"] == [1] * 10
     assert "gain_over_prior" not in saved["rows"]["pcrn_nclass"]
-    assert ("- learned Gaussian policy started on the side-picking scan + mirrored touch sets above its prior scan in "
+    assert ("- learned Gaussian policy started on the side-picking scan + mirrored touch sets above its reference scan in "
             "every seed, the same heads behind both, after 5 and 10 probes: met (after 5: 0.925 against 0.875, +0.050 "
             "+- 0.000, above in 2 of 2 seeds; after 10:") in text
-    assert "the hybrid rule + mirrored touch sets above its prior scan in every seed, the same heads behind both, " \
+    assert "the hybrid rule + mirrored touch sets above its reference scan in every seed, the same heads behind both, " \
            "after 5 and 10 probes: not met (after 5: 0.400 against 0.350, +0.050 +- 0.212, above in 1 of 2 seeds;" in text
-    assert table1.gains_over_own_scan({"random": saved["rows"]["random"]}) == [
-        "- No learned policy's runs scored their heads behind their prior scan: not compared."]
+    assert table1.gains_over_reference_scan({"random": saved["rows"]["random"]}) == [
+        "- No learned policy's runs scored their heads behind their reference scan: not compared."]
     assert "Beats the LSTM at every probe count from 3 on: not met at [3, 4, 5, 6, 7, 8, 9, 10]." in text
     # records the table must not take: another test set, a row defined otherwise, a split other than test
     stale = fake_record(table1, tmp_path, "lstm", 1, [0.5] * 10, fingerprint="other")

@@ -13,9 +13,9 @@ from pathlib import Path
 
 from hg.provenance import repo_path
 
-# what a run may change without becoming another run: the test, and the library classifier (scored at validation and
-# test, never trained)
-EVALUATION_ONLY = ("test_episodes", "eval_batch_size", "library_classifier")
+# what a run may change without becoming another run: the test, and what is scored at validation and test but never
+# trained (the library classifier, the scan the heads are compared behind)
+EVALUATION_ONLY = ("test_episodes", "eval_batch_size", "library_classifier", "compare_with")
 
 
 def run_args(configs: Sequence[str | Path], seed: int, *, eval_seed: int, test_episodes: int,
@@ -143,7 +143,7 @@ def changed_hyperparameters(saved: dict, model_hparams: Mapping, data_hparams: M
         elif isinstance(before, list) and isinstance(asked, list) and len(before) == len(asked):
             for i, (old, new) in enumerate(zip(before, asked)):
                 compare(f"{path}.{i}", old, new)
-        elif before != asked and not same_file(before, asked):
+        elif before != asked and not same_contents(before, asked):
             differ.append(f"{path}={json.dumps(before)} (now {json.dumps(asked)})")
 
     differ: list[str] = []
@@ -158,13 +158,17 @@ def changed_hyperparameters(saved: dict, model_hparams: Mapping, data_hparams: M
     return differ
 
 
-def same_file(before, asked) -> bool:
-    """Two paths to files of the same bytes are the same setting: a run folder moved to another clone of the repository
-    resumes there, although its checkpoint names the URDF in the first clone."""
+def same_contents(before: object, asked: object) -> bool:
+    """Two paths to files of the same bytes, as they are now, are the same setting: a run folder copied to another
+    clone of the repository resumes there, although its checkpoint names the URDF in the first clone (which must
+    still be there). Only files: a folder (data.objects) named elsewhere stays another setting."""
     if not (isinstance(before, str) and isinstance(asked, str)):
         return False
-    paths = Path(before), Path(asked)
-    return all(p.is_file() for p in paths) and paths[0].read_bytes() == paths[1].read_bytes()
+    try:
+        paths = Path(before), Path(asked)
+        return all(p.is_file() for p in paths) and paths[0].read_bytes() == paths[1].read_bytes()
+    except OSError:  # not a path at all (a name too long for one)
+        return False
 
 
 def test_fingerprint(datamodule) -> str:
