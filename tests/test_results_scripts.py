@@ -356,9 +356,9 @@ def test_merge_chooses_on_validation_compares_like_with_like_and_refuses_mixed_o
     fake_record(table1, tmp_path, "gaussian_on_side_scan", 0, [0.9] * 10, val=0.6,  # best on test, worse on val
                 test_columns={"prior": [0.85] * 10})
     fake_record(table1, tmp_path, "gaussian_on_side_scan", 1, [0.95] * 10, val=0.6, test_columns={"prior": [0.9] * 10})
-    for seed, prior in ((0, 0.2), (1, 0.5)):  # above its scan on the mean, in one seed only
+    for seed, prior in ((0, 0.2), (1, 0.5)):  # above its scan on the mean, in one seed only; its mean action in both
         fake_record(table1, tmp_path, "choice_on_side_scan", seed, [0.4] * 10, val=0.1,
-                    test_columns={"prior": [prior] * 10})
+                    test_columns={"prior": [prior] * 10}, accuracy_mean_action=[0.6] * 10)
     for seed in (0, 1):  # a seed whose heads never read behind a scan: no paired comparison for the row
         fake_record(table1, tmp_path, "pcrn_nclass", seed, [0.4] * 10, test_columns={"prior": [0.3] * 10} if seed else {})
     fake_record(table1, tmp_path, "planner_copy", 0, [0.7] * 10, val=0.8)
@@ -386,11 +386,14 @@ def test_merge_chooses_on_validation_compares_like_with_like_and_refuses_mixed_o
     # #57's paired comparison: the same heads behind the policy's probes and behind its scan's, seed by seed
     assert saved["rows"]["choice_on_side_scan"]["seeds_above_prior"] == [1] * 10
     assert "gain_over_prior" not in saved["rows"]["pcrn_nclass"]
-    assert ("- learned Gaussian policy started on the side-picking scan + mirrored touch sets above its reference scan in "
-            "every seed, the same heads behind both, after 5 and 10 probes: met (after 5: 0.925 against 0.875, +0.050 "
-            "+- 0.000, above in 2 of 2 seeds; after 10:") in text
+    assert ("- learned Gaussian policy started on the side-picking scan + mirrored touch sets above its reference "
+            "scan in every seed, the same heads behind both, after 5 and 10 probes: met (after 5: 0.925 against 0.875, "
+            "+0.050 +- 0.000, above in 2 of 2 seeds; after 10:") in text
     assert "the hybrid rule + mirrored touch sets above its reference scan in every seed, the same heads behind both, " \
            "after 5 and 10 probes: not met (after 5: 0.400 against 0.350, +0.050 +- 0.212, above in 1 of 2 seeds;" in text
+    assert "the hybrid rule + mirrored touch sets by its mean action above its reference scan in every seed, the same " \
+           "heads behind both, after 5 and 10 probes: met (after 5: 0.600 against 0.350, +0.250 +- " in text
+    assert saved["rows"]["choice_on_side_scan"]["seeds_mean_action_above_prior"] == [2] * 10
     assert table1.gains_over_reference_scan({"random": saved["rows"]["random"]}) == [
         "- No learned policy's runs scored their heads behind their reference scan: not compared."]
     assert "Beats the LSTM at every probe count from 3 on: not met at [3, 4, 5, 6, 7, 8, 9, 10]." in text
