@@ -81,3 +81,24 @@ def test_a_run_stopped_right_after_a_validation_resumes_knowing_its_score(tmp_pa
     # the resumable callback keeps a plain ModelCheckpoint's state key, as checkpoints from before it have
     latest = [key for key in checkpoint["callbacks"] if "'every_n_train_steps': 10" in key]
     assert len(latest) == 1 and latest[0].startswith("ModelCheckpoint{"), list(checkpoint["callbacks"])
+
+
+def test_a_run_folder_moved_between_attempts_resumes_from_its_last_step_with_its_best_score(tmp_path):
+    """Lightning drops the checkpoint callbacks' state when the folder saved in it is not the current one: the moved
+    run wrote last-v1.ckpt beside the last.ckpt it resumed from (the next attempt went back to the older one) and
+    chose its best among the later validations only."""
+    here, there = tmp_path / "here", tmp_path / "there"
+    here.mkdir()
+    fit(here, "--trainer.max_steps", "20", "--trainer.val_check_interval", "10", "--data.regions", "cells")
+    before = torch.load(last_checkpoint(here), weights_only=False)
+    best_before = next(s for k, s in before["callbacks"].items() if "'monitor': 'val/acc'" in k)
+    here.rename(there)
+    fit(there, "--trainer.max_steps", "30", "--trainer.val_check_interval", "10", "--data.regions", "cells",
+        "--ckpt_path", str(there / "checkpoints" / "last.ckpt"))
+    assert sorted(p.name for p in (there / "checkpoints").glob("last*")) == ["last.ckpt"]
+    after = torch.load(there / "checkpoints" / "last.ckpt", weights_only=False)
+    assert after["global_step"] == 30
+    best = next(s for k, s in after["callbacks"].items() if "'monitor': 'val/acc'" in k)
+    assert best["dirpath"] == str(there / "checkpoints") and Path(best["best_model_path"]).parent == there / "checkpoints"
+    assert best["best_model_score"] >= best_before["best_model_score"]  # the scores before the move still count
+    assert len(list((there / "checkpoints").glob("best-step*.ckpt"))) == 1  # the older best removed when beaten

@@ -1,6 +1,6 @@
 """Callbacks: per-probe accuracy files and plots, the run configuration saved where the run lives, the schedules of
-the policy's std and of the learning rate, a training clock that survives resuming, and a resumable checkpoint that
-knows the last validation."""
+the policy's std and of the learning rate, a training clock that survives resuming, and resumable checkpoints that
+know the last validation and survive a moved run folder."""
 from __future__ import annotations
 
 import csv
@@ -50,22 +50,46 @@ def per_probe_table(metrics: dict, stage: str, n_probes: int) -> dict[str, list[
     return columns
 
 
-class LatestCheckpoint(ModelCheckpoint):
+class MovableCheckpoint(ModelCheckpoint):
+    """A ModelCheckpoint whose run folder may be moved (to another clone or disk) between attempts. Lightning forgets
+    the best score and the last checkpoint's path when the folder saved in the state is not the current one: a moved
+    run then chose its best among the later validations only, and wrote last-v1.ckpt beside the last.ckpt it had
+    resumed from, so the next attempt resumed from the older file and trained its steps again. When the files the
+    state names are in the current folder, the state's paths are moved there first."""
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        saved, here = state_dict.get("dirpath"), self.dirpath
+        if saved and here and saved != here:
+            named = [p for p in [state_dict.get("best_model_path"), state_dict.get("last_model_path"),
+                                 *state_dict.get("best_k_models", {})] if p and Path(p).parent == Path(saved)]
+            if any((Path(here) / Path(p).name).is_file() for p in named):
+                def moved(value):
+                    if isinstance(value, str) and Path(value).parent == Path(saved):
+                        return str(Path(here) / Path(value).name)
+                    return value
+                state_dict = {k: ({moved(p): s for p, s in v.items()} if k == "best_k_models" else moved(v))
+                              for k, v in state_dict.items()}
+                state_dict["dirpath"] = here
+        super().load_state_dict(state_dict)
+
+    @property
+    def state_key(self) -> str:
+        """A plain ModelCheckpoint's key, so that checkpoints written before this class resume the same."""
+        return super().state_key.replace(type(self).__qualname__, ModelCheckpoint.__qualname__, 1)
+
+
+class LatestCheckpoint(MovableCheckpoint):
     """The checkpoint a run resumes from (last.ckpt, and latest-step{N}). Lightning writes it at the end of a training
     step, before a validation at that step, and not again after it; so a run stopped right after a validation
     resumed without that validation's score in the best-by-val callback's state, and could test a worse checkpoint
-    as its best. Written again after each validation here."""
+    as its best. Written again after each validation here. Its last.ckpt is never versioned (last-v1.ckpt): a run
+    resumes from last.ckpt by that name."""
 
     def on_validation_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         super().on_validation_end(trainer, pl_module)
         if (trainer.state.fn == TrainerFn.FITTING and not trainer.sanity_checking and not trainer.fast_dev_run
                 and self._last_global_step_saved == trainer.global_step):  # saved at this step, before validating
             self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
-
-    @property
-    def state_key(self) -> str:
-        """A plain ModelCheckpoint's key, so that checkpoints written before this class resume the same."""
-        return super().state_key.replace(type(self).__qualname__, ModelCheckpoint.__qualname__, 1)
 
 
 class FinalValidation(pl.Callback):

@@ -12,12 +12,11 @@ from pathlib import Path
 import torch
 import yaml
 
-from pytorch_lightning.callbacks import ModelCheckpoint
 from pytorch_lightning.cli import LightningArgumentParser, LightningCLI
 from pytorch_lightning.utilities.exceptions import MisconfigurationException
 
-from hg.lightning.callbacks import (CosineLR, FinalValidation, GradientDiagnostics, LatestCheckpoint, PerProbeAccuracy,
-                                   RunDirSaveConfig, StdDecay, TrainingClock)
+from hg.lightning.callbacks import (CosineLR, FinalValidation, GradientDiagnostics, LatestCheckpoint, MovableCheckpoint,
+                                   PerProbeAccuracy, RunDirSaveConfig, StdDecay, TrainingClock)
 from hg.lightning.data import ProbeDataModule
 from hg.lightning.module import HapticGlance
 from hg.lightning.viz import ProbeMaps
@@ -113,11 +112,12 @@ class HapticCLI(LightningCLI):
     def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
         # best by val/acc; and, separately, the latest every N steps plus last.ckpt for resuming (Lightning only
         # refreshes last.ckpt when its callback saved, which a best-only callback does not do every time)
-        parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
+        parser.add_lightning_class_args(MovableCheckpoint, "checkpoint")
         parser.set_defaults({"checkpoint.monitor": "val/acc", "checkpoint.mode": "max",
                              "checkpoint.filename": "best-step{step}", "checkpoint.auto_insert_metric_name": False})
         parser.add_lightning_class_args(LatestCheckpoint, "last_checkpoint")
-        parser.set_defaults({"last_checkpoint.save_last": True, "last_checkpoint.every_n_train_steps": 100,
+        parser.set_defaults({"last_checkpoint.save_last": True, "last_checkpoint.enable_version_counter": False,
+                             "last_checkpoint.every_n_train_steps": 100,
                              "last_checkpoint.filename": "latest-step{step}",
                              "last_checkpoint.auto_insert_metric_name": False})
         parser.add_lightning_class_args(FinalValidation, "final_validation")  # the last step is validated too
