@@ -210,6 +210,11 @@ def test_a_run_stopped_by_sigterm_resumes_is_recorded_once_and_refuses_another_c
     from hg.lightning.experiment import fit_and_test
 
     before = last.read_bytes()
+    (last.parent / "last-v1.ckpt").write_bytes(before)  # as a resume in a moved folder left it before c34c920
+    with pytest.raises(ValueError, match=r"last-v1.ckpt beside last.ckpt; the newest state may not be last.ckpt"):
+        fit_and_test([ROOT / "configs/random.yaml", ROOT / TINY], 0, ckpt / "random-seed0", eval_seed=0,
+                     test_episodes=32)
+    (last.parent / "last-v1.ckpt").unlink()
     lr = config(tmp_path, "lr", {"model": {"lr": 0.01}})
     with pytest.raises(ValueError, match=r"last.ckpt: trained with model.lr=0.001 \(now 0.01\).*Move .* away"):
         fit_and_test([ROOT / "configs/random.yaml", ROOT / TINY, lr], 0, ckpt / "random-seed0", eval_seed=0,

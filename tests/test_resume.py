@@ -1,5 +1,6 @@
 """A fit killed mid-run resumes from last.ckpt at the right step and ends where an uninterrupted run ends."""
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -83,22 +84,49 @@ def test_a_run_stopped_right_after_a_validation_resumes_knowing_its_score(tmp_pa
     assert len(latest) == 1 and latest[0].startswith("ModelCheckpoint{"), list(checkpoint["callbacks"])
 
 
-def test_a_run_folder_moved_between_attempts_resumes_from_its_last_step_with_its_best_score(tmp_path):
-    """Lightning drops the checkpoint callbacks' state when the folder saved in it is not the current one: the moved
-    run wrote last-v1.ckpt beside the last.ckpt it resumed from (the next attempt went back to the older one) and
-    chose its best among the later validations only."""
-    here, there = tmp_path / "here", tmp_path / "there"
-    here.mkdir()
-    fit(here, "--trainer.max_steps", "20", "--trainer.val_check_interval", "10", "--data.regions", "cells")
-    before = torch.load(last_checkpoint(here), weights_only=False)
-    best_before = next(s for k, s in before["callbacks"].items() if "'monitor': 'val/acc'" in k)
-    here.rename(there)
-    fit(there, "--trainer.max_steps", "30", "--trainer.val_check_interval", "10", "--data.regions", "cells",
-        "--ckpt_path", str(there / "checkpoints" / "last.ckpt"))
-    assert sorted(p.name for p in (there / "checkpoints").glob("last*")) == ["last.ckpt"]
-    after = torch.load(there / "checkpoints" / "last.ckpt", weights_only=False)
-    assert after["global_step"] == 30
-    best = next(s for k, s in after["callbacks"].items() if "'monitor': 'val/acc'" in k)
-    assert best["dirpath"] == str(there / "checkpoints") and Path(best["best_model_path"]).parent == there / "checkpoints"
-    assert best["best_model_score"] >= best_before["best_model_score"]  # the scores before the move still count
-    assert len(list((there / "checkpoints").glob("best-step*.ckpt"))) == 1  # the older best removed when beaten
+def best_state(checkpoint: Path) -> dict:
+    state = torch.load(checkpoint, weights_only=False)
+    return next(s for k, s in state["callbacks"].items() if "'monitor': 'val/acc'" in k) | {"step": state["global_step"]}
+
+
+@pytest.mark.parametrize("moved", [True, False])
+def test_a_run_resumed_in_another_folder_keeps_its_last_step_and_its_best_score(tmp_path, moved):
+    """Lightning drops the checkpoint callbacks' record when the run's folder is not the one saved: a run moved to
+    another clone wrote last-v1.ckpt beside the last.ckpt it resumed from (the next attempt went back to the older
+    one), and a run resumed into a new folder (a new logger's) chose its best among the later validations only."""
+    first, second = tmp_path / "first", tmp_path / "second"
+    first.mkdir()
+    fit(first, "--trainer.max_steps", "20", "--trainer.val_check_interval", "10", "--data.regions", "cells")
+    before = best_state(first / "checkpoints" / "last.ckpt")
+    kept = sorted(p.name for p in (first / "checkpoints").iterdir())
+    if moved:
+        first.rename(second)
+    else:
+        second.mkdir()
+    source = (second if moved else first) / "checkpoints" / "last.ckpt"
+    # no validation after the resume: the record the second attempt writes is the one it restored
+    fit(second, "--trainer.max_steps", "30", "--trainer.limit_val_batches", "0", "--data.regions", "cells",
+        "--ckpt_path", str(source))
+    assert sorted(p.name for p in (second / "checkpoints").glob("last*")) == ["last.ckpt"]
+    after = best_state(second / "checkpoints" / "last.ckpt")
+    assert after["step"] == 30 and after["best_model_score"] == before["best_model_score"] is not None
+    best = Path(after["best_model_path"])
+    assert best.is_file() and best == source.parent / Path(before["best_model_path"]).name
+    if not moved:  # nothing of the first folder is removed
+        assert sorted(p.name for p in (first / "checkpoints").iterdir()) == kept
+
+
+def test_a_checkpoint_copied_without_its_best_resumes_as_lightning_would(tmp_path):
+    """A last.ckpt alone in a new folder: its record names a best that is not beside it, so Lightning's own handling
+    stands (the best is chosen among the new validations) rather than a best that cannot be tested."""
+    first, second = tmp_path / "first", tmp_path / "second"
+    first.mkdir(), second.mkdir()
+    fit(first, "--trainer.max_steps", "20", "--trainer.val_check_interval", "10", "--data.regions", "cells")
+    (second / "copied").mkdir()
+    copied = second / "copied" / "last.ckpt"
+    copied.write_bytes((first / "checkpoints" / "last.ckpt").read_bytes())
+    shutil.rmtree(first)
+    fit(second, "--trainer.max_steps", "30", "--trainer.val_check_interval", "10", "--data.regions", "cells",
+        "--ckpt_path", str(copied))
+    after = best_state(second / "checkpoints" / "last.ckpt")
+    assert after["step"] == 30 and Path(after["best_model_path"]).is_file()

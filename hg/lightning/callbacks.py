@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import os
 import statistics
 import time
 from pathlib import Path
@@ -51,25 +52,29 @@ def per_probe_table(metrics: dict, stage: str, n_probes: int) -> dict[str, list[
 
 
 class MovableCheckpoint(ModelCheckpoint):
-    """A ModelCheckpoint whose run folder may be moved (to another clone or disk) between attempts. Lightning forgets
-    the best score and the last checkpoint's path when the folder saved in the state is not the current one: a moved
-    run then chose its best among the later validations only, and wrote last-v1.ckpt beside the last.ckpt it had
-    resumed from, so the next attempt resumed from the older file and trained its steps again. When the files the
-    state names are in the current folder, the state's paths are moved there first."""
+    """A ModelCheckpoint that keeps its record (best score, best and last paths) when a run resumes in another folder
+    than the one saved: moved to another clone, or a new logger's folder. Lightning drops it there, and the run chose
+    its best among the later validations only (docs/findings.md, section 24). The saved paths are read as lying
+    beside the checkpoint resumed from; where its best is not there, Lightning's own handling stands."""
+
+    PATHS = ("best_model_path", "kth_best_model_path", "last_model_path")
+    _resumed_from: str | None = None
+
+    def on_load_checkpoint(self, trainer: pl.Trainer, pl_module: pl.LightningModule, checkpoint: dict) -> None:
+        self._resumed_from = trainer.ckpt_path  # Lightning loads this callback's state right after this hook
 
     def load_state_dict(self, state_dict: dict) -> None:
-        saved, here = state_dict.get("dirpath"), self.dirpath
-        if saved and here and saved != here:
-            named = [p for p in [state_dict.get("best_model_path"), state_dict.get("last_model_path"),
-                                 *state_dict.get("best_k_models", {})] if p and Path(p).parent == Path(saved)]
-            if any((Path(here) / Path(p).name).is_file() for p in named):
-                def moved(value):
-                    if isinstance(value, str) and Path(value).parent == Path(saved):
-                        return str(Path(here) / Path(value).name)
-                    return value
-                state_dict = {k: ({moved(p): s for p, s in v.items()} if k == "best_k_models" else moved(v))
-                              for k, v in state_dict.items()}
-                state_dict["dirpath"] = here
+        saved, source = state_dict.get("dirpath"), self._resumed_from
+        if all(p and "://" not in str(p) for p in (saved, source, self.dirpath)) and saved != self.dirpath:
+            beside = os.path.dirname(os.path.realpath(source))
+
+            def there(path: str) -> str:
+                return os.path.join(beside, os.path.basename(path)) if os.path.dirname(path) == saved else path
+
+            moved = {k: there(state_dict[k]) for k in self.PATHS if state_dict.get(k)}
+            if "best_model_path" not in moved or os.path.isfile(moved["best_model_path"]):
+                state_dict = {**state_dict, **moved, "dirpath": self.dirpath,
+                              "best_k_models": {there(p): v for p, v in state_dict.get("best_k_models", {}).items()}}
         super().load_state_dict(state_dict)
 
     @property
@@ -82,8 +87,7 @@ class LatestCheckpoint(MovableCheckpoint):
     """The checkpoint a run resumes from (last.ckpt, and latest-step{N}). Lightning writes it at the end of a training
     step, before a validation at that step, and not again after it; so a run stopped right after a validation
     resumed without that validation's score in the best-by-val callback's state, and could test a worse checkpoint
-    as its best. Written again after each validation here. Its last.ckpt is never versioned (last-v1.ckpt): a run
-    resumes from last.ckpt by that name."""
+    as its best. Written again after each validation here."""
 
     def on_validation_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         super().on_validation_end(trainer, pl_module)

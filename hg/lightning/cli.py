@@ -116,8 +116,7 @@ class HapticCLI(LightningCLI):
         parser.set_defaults({"checkpoint.monitor": "val/acc", "checkpoint.mode": "max",
                              "checkpoint.filename": "best-step{step}", "checkpoint.auto_insert_metric_name": False})
         parser.add_lightning_class_args(LatestCheckpoint, "last_checkpoint")
-        parser.set_defaults({"last_checkpoint.save_last": True, "last_checkpoint.enable_version_counter": False,
-                             "last_checkpoint.every_n_train_steps": 100,
+        parser.set_defaults({"last_checkpoint.save_last": True, "last_checkpoint.every_n_train_steps": 100,
                              "last_checkpoint.filename": "latest-step{step}",
                              "last_checkpoint.auto_insert_metric_name": False})
         parser.add_lightning_class_args(FinalValidation, "final_validation")  # the last step is validated too

@@ -55,6 +55,10 @@ def fit_and_test(configs: str | Path | Sequence[str | Path], seed: int, folder: 
                              str(max(1, min(500, steps // 4)))] if steps is not None else [])]
     given = {"eval_seed": eval_seed, "test_episodes": test_episodes, "extra_args": extra}
     checkpoints = folder / "checkpoints"
+    versioned = sorted(p.name for p in checkpoints.glob("last-v*.ckpt"))
+    if checkpoint is None and versioned:  # written beside last.ckpt by a resume in a moved folder before c34c920
+        raise ValueError(f"{checkpoints}: {', '.join(versioned)} beside last.ckpt; the newest state may not be "
+                         "last.ckpt, which a resume reads. Keep the newest of them as last.ckpt, remove the others")
     # WANDB_MODE=disabled (the tests): no logger at all, the run's files in its folder (a wandb logger asked for
     # offline runs makes one whatever the variable says)
     wandb_run = os.environ.get("WANDB_MODE") != "disabled"
