@@ -55,7 +55,7 @@ class MovableCheckpoint(ModelCheckpoint):
     """A ModelCheckpoint that keeps its record (best score, best and last paths) when a run resumes in another folder
     than the one saved: moved to another clone, or a new logger's folder. Lightning drops it there, and the run chose
     its best among the later validations only (docs/findings.md, section 24). The saved paths are read as lying
-    beside the checkpoint resumed from; where its best is not there, Lightning's own handling stands."""
+    beside the checkpoint resumed from; where none of the files it names is there, Lightning's own handling stands."""
 
     PATHS = ("best_model_path", "kth_best_model_path", "last_model_path")
     _resumed_from: str | None = None
@@ -67,12 +67,14 @@ class MovableCheckpoint(ModelCheckpoint):
         saved, source = state_dict.get("dirpath"), self._resumed_from
         if all(p and "://" not in str(p) for p in (saved, source, self.dirpath)) and saved != self.dirpath:
             beside = os.path.dirname(os.path.realpath(source))
+            if beside == os.path.realpath(self.dirpath):  # spelled as Lightning spells the folder it saves into
+                beside = self.dirpath
 
             def there(path: str) -> str:
                 return os.path.join(beside, os.path.basename(path)) if os.path.dirname(path) == saved else path
 
             moved = {k: there(state_dict[k]) for k in self.PATHS if state_dict.get(k)}
-            if "best_model_path" not in moved or os.path.isfile(moved["best_model_path"]):
+            if any(os.path.isfile(p) for p in moved.values()):  # the best, or the last.ckpt resumed from
                 state_dict = {**state_dict, **moved, "dirpath": self.dirpath,
                               "best_k_models": {there(p): v for p, v in state_dict.get("best_k_models", {}).items()}}
         super().load_state_dict(state_dict)
